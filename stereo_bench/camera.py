@@ -1,0 +1,517 @@
+"""The camera model: the single source of truth for projection in SynthCal.
+
+Pinhole camera with OpenCV's distortion model and conventions:
+
+* pixel coordinates put the centre of the top-left pixel at (0, 0);
+* ``cam_from_world`` maps world points into the camera frame, ``p_cam = R @ p_world + t``,
+  with ``R`` stored as a Rodrigues vector ``rvec`` and ``t`` as ``tvec`` (millimetres);
+* distortion coefficients in OpenCV's order ``[k1, k2, p1, p2, k3, k4, k5, k6]``, applied to
+  normalized undistorted coordinates (x, y) = (X/Z, Y/Z)::
+
+      r2 = x^2 + y^2
+      radial = (1 + k1 r2 + k2 r2^2 + k3 r2^3) / (1 + k4 r2 + k5 r2^2 + k6 r2^3)
+      xd = x radial + 2 p1 x y + p2 (r2 + 2 x^2)
+      yd = y radial + p1 (r2 + 2 y^2) + 2 p2 x y
+      u = fx xd + skew yd + cx,   v = fy yd + cy
+
+Every projection function has its analytic Jacobian beside it (tested against finite
+differences). Unprojection inverts the distortion by Newton's method to 1e-10 px and refuses
+distortions that are not invertible over the image (a fold of the radial map inside it).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "skew")
+POSE_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
+
+
+class DistortionNotInvertibleError(ValueError):
+    """The distortion map folds over inside the image, so a pixel has no unique ray."""
+
+
+# ----------------------------------------------------------------------------------------------
+# Rotations (Rodrigues vectors)
+# ----------------------------------------------------------------------------------------------
+
+def skew_matrix(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices [v]x for v of shape (..., 3) -> (..., 3, 3)."""
+    v = np.asarray(v, dtype=np.float64)
+    z = np.zeros(v.shape[:-1])
+    return np.stack(
+        [
+            np.stack([z, -v[..., 2], v[..., 1]], -1),
+            np.stack([v[..., 2], z, -v[..., 0]], -1),
+            np.stack([-v[..., 1], v[..., 0], z], -1),
+        ],
+        -2,
+    )
+
+
+def rodrigues_to_matrix(rvec: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) from Rodrigues vectors (..., 3) (exponential map)."""
+    rvec = np.asarray(rvec, dtype=np.float64)
+    theta = np.linalg.norm(rvec, axis=-1)[..., None, None]
+    K = skew_matrix(rvec)
+    small = theta < 1e-8
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def matrix_to_rodrigues(R: np.ndarray) -> np.ndarray:
+    """Rodrigues vectors (..., 3) from rotation matrices (..., 3, 3) (logarithm map).
+
+    Uses the quaternion route, which is accurate near 0 and near pi alike.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    tr = np.trace(R, axis1=-2, axis2=-1)
+    # Shepperd's method: pick the largest of 4 candidate quaternion components.
+    cand = np.stack([tr, R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]], -1)
+    k = np.argmax(cand, axis=-1)
+    q = np.empty(R.shape[:-2] + (4,))
+    for i in range(4):
+        m = k == i
+        if not np.any(m):
+            continue
+        Rm = R[m]
+        if i == 0:
+            w = np.sqrt(np.maximum(1.0 + np.trace(Rm, axis1=-2, axis2=-1), 0.0)) / 2
+            q[m] = np.stack([w, (Rm[:, 2, 1] - Rm[:, 1, 2]) / (4 * w),
+                             (Rm[:, 0, 2] - Rm[:, 2, 0]) / (4 * w),
+                             (Rm[:, 1, 0] - Rm[:, 0, 1]) / (4 * w)], -1)
+        else:
+            a, b, c = i - 1, i % 3, (i + 1) % 3
+            s = np.sqrt(np.maximum(1.0 + Rm[:, a, a] - Rm[:, b, b] - Rm[:, c, c], 0.0)) * 2
+            comp = np.empty((Rm.shape[0], 4))
+            comp[:, 0] = (Rm[:, c, b] - Rm[:, b, c]) / s
+            comp[:, 1 + a] = s / 4
+            comp[:, 1 + b] = (Rm[:, b, a] + Rm[:, a, b]) / s
+            comp[:, 1 + c] = (Rm[:, c, a] + Rm[:, a, c]) / s
+            q[m] = comp
+    q = q * np.where(q[..., :1] < 0, -1.0, 1.0)
+    vn = np.linalg.norm(q[..., 1:], axis=-1)
+    angle = 2 * np.arctan2(vn, q[..., 0])
+    scale = np.where(vn < 1e-12, 2.0, angle / np.where(vn < 1e-12, 1.0, vn))
+    return q[..., 1:] * scale[..., None]
+
+
+def rotate_jacobian(rvec: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """d(R(rvec) @ p)/d rvec, shape (N, 3, 3), for one rvec (3,) and points (N, 3).
+
+    Gallego & Yezzi, "A compact formula for the derivative of a 3-D rotation in exponential
+    coordinates", JMIV 2015, eq. (8): d(R u)/dv = -R [u]x (v v^T + (R^T - I)[v]x) / |v|^2.
+    """
+    v = np.asarray(rvec, dtype=np.float64)
+    R = rodrigues_to_matrix(v)
+    Ux = skew_matrix(points)
+    th2 = float(v @ v)
+    if th2 < 1e-16:
+        return -Ux  # d(Ru)/dv at v = 0 is -[u]x
+    M = (np.outer(v, v) + (R.T - np.eye(3)) @ skew_matrix(v)) / th2
+    return -(R @ Ux) @ M
+
+
+def compose(R_ab: np.ndarray, t_ab: np.ndarray, R_bc: np.ndarray, t_bc: np.ndarray):
+    """a_from_c = a_from_b o b_from_c for (R, t) pairs."""
+    return R_ab @ R_bc, R_ab @ t_bc + t_ab
+
+
+def invert(R: np.ndarray, t: np.ndarray):
+    """b_from_a from a_from_b given as (R, t)."""
+    Rt = np.swapaxes(R, -1, -2)
+    return Rt, -(Rt @ t[..., None])[..., 0]
+
+
+# ----------------------------------------------------------------------------------------------
+# Distortion
+# ----------------------------------------------------------------------------------------------
+
+def distort(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Apply OpenCV distortion to normalized points (..., 2) -> distorted normalized (..., 2)."""
+    return distort_with_jacobians(xy, dist)[0]
+
+
+def distort_with_jacobians(xy: np.ndarray, dist: np.ndarray):
+    """Distort normalized points and return (xd (...,2), d xd/d xy (...,2,2), d xd/d dist (...,2,8))."""
+    xy = np.asarray(xy, dtype=np.float64)
+    k1, k2, p1, p2, k3, k4, k5, k6 = np.asarray(dist, dtype=np.float64)
+    x, y = xy[..., 0], xy[..., 1]
+    r2 = x * x + y * y
+    r4, r6 = r2 * r2, r2 * r2 * r2
+    num = 1 + k1 * r2 + k2 * r4 + k3 * r6
+    den = 1 + k4 * r2 + k5 * r4 + k6 * r6
+    radial = num / den
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+
+    dnum = k1 + 2 * k2 * r2 + 3 * k3 * r4
+    dden = k4 + 2 * k5 * r2 + 3 * k6 * r4
+    drad_dr2 = (dnum * den - num * dden) / (den * den)
+    J = np.empty(xy.shape[:-1] + (2, 2))
+    J[..., 0, 0] = radial + x * drad_dr2 * 2 * x + 2 * p1 * y + 6 * p2 * x
+    J[..., 0, 1] = x * drad_dr2 * 2 * y + 2 * p1 * x + 2 * p2 * y
+    J[..., 1, 0] = y * drad_dr2 * 2 * x + 2 * p1 * x + 2 * p2 * y
+    J[..., 1, 1] = radial + y * drad_dr2 * 2 * y + 6 * p1 * y + 2 * p2 * x
+
+    Jd = np.zeros(xy.shape[:-1] + (2, 8))
+    for i, rp in ((0, r2), (1, r4), (4, r6)):  # k1, k2, k3 enter the numerator
+        Jd[..., 0, i] = x * rp / den
+        Jd[..., 1, i] = y * rp / den
+    for i, rp in ((5, r2), (6, r4), (7, r6)):  # k4, k5, k6 enter the denominator
+        Jd[..., 0, i] = -x * radial * rp / den
+        Jd[..., 1, i] = -y * radial * rp / den
+    Jd[..., 0, 2] = 2 * x * y
+    Jd[..., 1, 2] = r2 + 2 * y * y
+    Jd[..., 0, 3] = r2 + 2 * x * x
+    Jd[..., 1, 3] = 2 * x * y
+    return np.stack([xd, yd], -1), J, Jd
+
+
+def radial_fold_radius(dist: np.ndarray, r_max: float = 20.0) -> float:
+    """Smallest undistorted radius where the radial map r -> r * radial(r) stops increasing.
+
+    Beyond it the distortion folds back and pixels have more than one ray. Returns ``inf`` if
+    the map increases up to ``r_max`` (normalized units; 20 is ~87 degrees off axis) and the
+    radial factor stays positive.
+    """
+    k1, k2, _, _, k3, k4, k5, k6 = np.asarray(dist, dtype=np.float64)
+    r = np.linspace(0.0, r_max, 200001)
+    r2 = r * r
+    num = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
+    den = 1 + k4 * r2 + k5 * r2**2 + k6 * r2**3
+    rd = r * num / den
+    bad = (np.diff(rd) <= 0) | (den[1:] <= 0) | (num[1:] <= 0)
+    return float(r[1:][bad][0]) if np.any(bad) else float("inf")
+
+
+def undistort_normalized(
+    xd: np.ndarray, dist: np.ndarray, tol: float = 1e-13, max_iter: int = 50
+) -> tuple[np.ndarray, np.ndarray]:
+    """Invert :func:`distort` by Newton's method.
+
+    Returns (xy (...,2), converged mask (...)). ``tol`` is in normalized units (1e-13 is
+    about 1e-10 px for focal lengths up to 1000 px; callers in pixels use :func:`unproject`).
+    The start is the distorted point itself, then a few fixed-point steps; Newton converges
+    quadratically after that for every lens whose radial map is monotone over the image.
+    """
+    xd = np.asarray(xd, dtype=np.float64)
+    dist = np.asarray(dist, dtype=np.float64)
+    xy = xd.copy()
+    if not np.any(dist):
+        return xy, np.ones(xd.shape[:-1], dtype=bool)
+    converged = np.zeros(xd.shape[:-1], dtype=bool)
+    for _ in range(max_iter):
+        f, J, _ = distort_with_jacobians(xy, dist)
+        res = f - xd
+        converged = np.max(np.abs(res), axis=-1) < tol
+        if np.all(converged):
+            break
+        det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
+        det = np.where(np.abs(det) < 1e-300, 1e-300, det)
+        dx = (J[..., 1, 1] * res[..., 0] - J[..., 0, 1] * res[..., 1]) / det
+        dy = (-J[..., 1, 0] * res[..., 0] + J[..., 0, 0] * res[..., 1]) / det
+        step = np.stack([dx, dy], -1)
+        # Damp steps that would jump far (far outside the valid region Newton can overshoot).
+        n = np.linalg.norm(step, axis=-1, keepdims=True)
+        lim = 0.5 * (1.0 + np.linalg.norm(xy, axis=-1, keepdims=True))
+        step = np.where(n > lim, step * lim / np.maximum(n, 1e-300), step)
+        xy = xy - np.where(converged[..., None], 0.0, step)
+    return xy, converged
+
+
+# ----------------------------------------------------------------------------------------------
+# Projection with Jacobians
+# ----------------------------------------------------------------------------------------------
+
+def project_points(
+    points: np.ndarray,
+    intrinsics: np.ndarray,
+    dist: np.ndarray,
+    rvec: np.ndarray,
+    tvec: np.ndarray,
+) -> np.ndarray:
+    """Project 3D points (N,3) through pose (rvec, tvec) and intrinsics [fx, fy, cx, cy, skew]."""
+    return project_with_jacobians(points, intrinsics, dist, rvec, tvec, jacobians=False)[0]
+
+
+def project_with_jacobians(
+    points: np.ndarray,
+    intrinsics: np.ndarray,
+    dist: np.ndarray,
+    rvec: np.ndarray,
+    tvec: np.ndarray,
+    jacobians: bool = True,
+):
+    """Project points (N,3) and return pixels (N,2) plus, if asked, a dict of Jacobians.
+
+    Jacobians: ``point`` (N,2,3), ``intrinsics`` (N,2,5) over [fx, fy, cx, cy, skew],
+    ``dist`` (N,2,8), ``pose`` (N,2,6) over [rvec, tvec].
+    """
+    P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    fx, fy, cx, cy, s = np.asarray(intrinsics, dtype=np.float64)
+    R = rodrigues_to_matrix(rvec)
+    Pc = P @ R.T + np.asarray(tvec, dtype=np.float64)
+    z = Pc[:, 2]
+    xy = Pc[:, :2] / z[:, None]
+    xd, Jxy, Jdist = distort_with_jacobians(xy, dist)
+    uv = np.stack([fx * xd[:, 0] + s * xd[:, 1] + cx, fy * xd[:, 1] + cy], -1)
+    if not jacobians:
+        return uv, None
+    N = len(P)
+    A = np.array([[fx, s], [0.0, fy]])  # d uv / d xd
+    Ji = np.zeros((N, 2, 5))
+    Ji[:, 0, 0] = xd[:, 0]
+    Ji[:, 1, 1] = xd[:, 1]
+    Ji[:, 0, 2] = 1.0
+    Ji[:, 1, 3] = 1.0
+    Ji[:, 0, 4] = xd[:, 1]
+    # d xy / d Pc: [[1/z, 0, -x/z], [0, 1/z, -y/z]]
+    Jproj = np.zeros((N, 2, 3))
+    Jproj[:, 0, 0] = 1 / z
+    Jproj[:, 1, 1] = 1 / z
+    Jproj[:, 0, 2] = -xy[:, 0] / z
+    Jproj[:, 1, 2] = -xy[:, 1] / z
+    J_uv_Pc = A @ Jxy @ Jproj  # (N,2,3)
+    Jpose = np.concatenate([J_uv_Pc @ rotate_jacobian(rvec, P), J_uv_Pc], axis=-1)
+    return uv, {
+        "point": J_uv_Pc @ R,
+        "intrinsics": Ji,
+        "dist": A @ Jdist,
+        "pose": Jpose,
+    }
+
+
+# ----------------------------------------------------------------------------------------------
+# The Camera
+# ----------------------------------------------------------------------------------------------
+
+def _vec(values, n: int, name: str) -> np.ndarray:
+    a = np.asarray(values, dtype=np.float64).reshape(-1)
+    if a.shape != (n,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: expected {n} finite numbers, got {values!r}")
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """A calibrated camera: image size, intrinsics, OpenCV distortion and cam_from_world."""
+
+    name: str
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    skew: float = 0.0
+    dist: np.ndarray = field(default_factory=lambda: np.zeros(8))
+    rvec: np.ndarray = field(default_factory=lambda: np.zeros(3))  # cam_from_world rotation
+    tvec: np.ndarray = field(default_factory=lambda: np.zeros(3))  # cam_from_world translation, mm
+
+    def __post_init__(self):
+        if int(self.width) <= 0 or int(self.height) <= 0:
+            raise ValueError(f"camera {self.name!r}: image size must be positive, got "
+                             f"{self.width}x{self.height}")
+        if not (self.fx > 0 and self.fy > 0):
+            raise ValueError(f"camera {self.name!r}: fx and fy must be positive, got "
+                             f"{self.fx}, {self.fy}")
+        d = np.asarray(self.dist, dtype=np.float64).reshape(-1)
+        if d.size > 8:
+            raise ValueError(f"camera {self.name!r}: dist has {d.size} coefficients, expected "
+                             f"at most 8 {list(DIST_NAMES)}")
+        object.__setattr__(self, "dist", np.concatenate([d, np.zeros(8 - d.size)]))
+        object.__setattr__(self, "rvec", _vec(self.rvec, 3, f"camera {self.name!r}: rvec"))
+        object.__setattr__(self, "tvec", _vec(self.tvec, 3, f"camera {self.name!r}: tvec"))
+        object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "height", int(self.height))
+        for k in ("fx", "fy", "cx", "cy", "skew"):
+            object.__setattr__(self, k, float(getattr(self, k)))
+
+    # --- parameter views --------------------------------------------------------------------
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, self.skew, self.cx], [0.0, self.fy, self.cy], [0, 0, 1.0]])
+
+    @property
+    def intrinsics(self) -> np.ndarray:
+        """[fx, fy, cx, cy, skew]."""
+        return np.array([self.fx, self.fy, self.cx, self.cy, self.skew])
+
+    @property
+    def R(self) -> np.ndarray:
+        """Rotation of cam_from_world."""
+        return rodrigues_to_matrix(self.rvec)
+
+    @property
+    def center(self) -> np.ndarray:
+        """Camera centre in world coordinates (mm)."""
+        return -self.R.T @ self.tvec
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return (self.width, self.height)
+
+    def with_params(self, **changes) -> "Camera":
+        return replace(self, **changes)
+
+    @classmethod
+    def from_K(cls, name, width, height, K, dist=(), rvec=(0, 0, 0), tvec=(0, 0, 0)):
+        K = np.asarray(K, dtype=np.float64)
+        return cls(name, width, height, K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1],
+                   np.asarray(dist, dtype=np.float64), np.asarray(rvec), np.asarray(tvec))
+
+    # --- geometry ---------------------------------------------------------------------------
+    def world_to_cam(self, points: np.ndarray) -> np.ndarray:
+        """World points (..., 3) -> camera-frame points (..., 3)."""
+        return np.asarray(points, dtype=np.float64) @ self.R.T + self.tvec
+
+    def project(self, points_world: np.ndarray) -> np.ndarray:
+        """World points (..., 3) -> pixels (..., 2), with distortion."""
+        P = np.asarray(points_world, dtype=np.float64)
+        uv = project_points(P.reshape(-1, 3), self.intrinsics, self.dist, self.rvec, self.tvec)
+        return uv.reshape(P.shape[:-1] + (2,))
+
+    def project_cam(self, points_cam: np.ndarray) -> np.ndarray:
+        """Camera-frame points (..., 3) -> pixels (..., 2)."""
+        P = np.asarray(points_cam, dtype=np.float64)
+        return self.normalized_to_pixels(P[..., :2] / P[..., 2:3])
+
+    def normalized_to_pixels(self, xy: np.ndarray) -> np.ndarray:
+        """Undistorted normalized coordinates (..., 2) -> distorted pixels (..., 2)."""
+        xd = distort(xy, self.dist)
+        return np.stack([self.fx * xd[..., 0] + self.skew * xd[..., 1] + self.cx,
+                         self.fy * xd[..., 1] + self.cy], -1)
+
+    def pixels_to_distorted_normalized(self, uv: np.ndarray) -> np.ndarray:
+        uv = np.asarray(uv, dtype=np.float64)
+        yd = (uv[..., 1] - self.cy) / self.fy
+        xd = (uv[..., 0] - self.cx - self.skew * yd) / self.fx
+        return np.stack([xd, yd], -1)
+
+    def unproject(self, uv: np.ndarray, tol_px: float = 1e-10) -> np.ndarray:
+        """Pixels (..., 2) -> undistorted normalized coordinates (..., 2) (rays (x, y, 1)).
+
+        Newton's iteration to ``tol_px`` in pixels. Raises DistortionNotInvertibleError when a
+        pixel lies beyond the fold of the radial distortion or the iteration does not converge.
+        """
+        xd = self.pixels_to_distorted_normalized(uv)
+        tol = tol_px / max(self.fx, self.fy)
+        xy, ok = undistort_normalized(xd, self.dist, tol=tol)
+        fold = radial_fold_radius(self.dist)
+        r = np.linalg.norm(xy, axis=-1)
+        bad = ~ok | (r >= fold) | ~np.isfinite(r)
+        if np.any(bad):
+            where = np.asarray(uv)[bad][0]
+            raise DistortionNotInvertibleError(
+                f"camera {self.name!r}: distortion {self.dist.tolist()} is not invertible at "
+                f"pixel ({where[0]:.1f}, {where[1]:.1f}) ({int(bad.sum())} pixels): the radial "
+                f"map folds at normalized radius {fold:.4g}; reduce |k| or the image size")
+        return xy
+
+    def unproject_rays(self, uv: np.ndarray) -> np.ndarray:
+        """Pixels (..., 2) -> unit ray directions in the camera frame (..., 3)."""
+        xy = self.unproject(uv)
+        d = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], -1)
+        return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+    def pixel_grid(self, step: int = 1) -> np.ndarray:
+        """Pixel centres (H', W', 2) on a regular grid covering the image (OpenCV centres)."""
+        u = np.arange(0, self.width, step, dtype=np.float64)
+        v = np.arange(0, self.height, step, dtype=np.float64)
+        return np.stack(np.meshgrid(u, v), -1)
+
+    def check_invertible(self, step: int = 8) -> None:
+        """Raise DistortionNotInvertibleError if any pixel (on a grid plus the border) has no ray."""
+        border = np.concatenate([
+            np.stack([np.arange(self.width), np.zeros(self.width)], -1),
+            np.stack([np.arange(self.width), np.full(self.width, self.height - 1)], -1),
+            np.stack([np.zeros(self.height), np.arange(self.height)], -1),
+            np.stack([np.full(self.height, self.width - 1), np.arange(self.height)], -1),
+        ])
+        self.unproject(np.concatenate([self.pixel_grid(step).reshape(-1, 2), border]))
+
+    # --- serialization ----------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return {
+            "name": self.name, "width": self.width, "height": self.height,
+            "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "skew": self.skew,
+            "dist": dict(zip(DIST_NAMES, self.dist.tolist())),
+            "cam_from_world": {"rvec": self.rvec.tolist(), "tvec_mm": self.tvec.tolist()},
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str = "camera") -> "Camera":
+        try:
+            dist = d.get("dist", {})
+            if isinstance(dist, dict):
+                unknown = set(dist) - set(DIST_NAMES)
+                if unknown:
+                    raise ValueError(f"unknown distortion coefficients {sorted(unknown)}; "
+                                     f"expected {list(DIST_NAMES)}")
+                dist = [float(dist.get(k, 0.0)) for k in DIST_NAMES]
+            pose = d.get("cam_from_world", {})
+            return cls(str(d["name"]), int(d["width"]), int(d["height"]), float(d["fx"]),
+                       float(d["fy"]), float(d["cx"]), float(d["cy"]), float(d.get("skew", 0.0)),
+                       np.asarray(dist, dtype=np.float64), pose.get("rvec", [0, 0, 0]),
+                       pose.get("tvec_mm", [0, 0, 0]))
+        except KeyError as e:
+            raise ValueError(f"{source}: missing field {e.args[0]!r}") from None
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{source}: {e}") from None
+
+    def save_json(self, path) -> None:
+        Path(path).write_text(json.dumps(self.to_dict(), indent=2))
+
+    @classmethod
+    def load_json(cls, path) -> "Camera":
+        try:
+            d = json.loads(Path(path).read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise ValueError(f"{path}: cannot read camera JSON ({e})") from None
+        return cls.from_dict(d, source=str(path))
+
+    def save_opencv_yaml(self, path) -> None:
+        """OpenCV FileStorage YAML with the keys of OpenCV's calibration sample."""
+        import cv2
+
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+        fs.write("camera_name", self.name)
+        fs.write("image_width", self.width)
+        fs.write("image_height", self.height)
+        fs.write("camera_matrix", self.K)
+        fs.write("distortion_coefficients", self.dist.reshape(1, 8))
+        fs.write("rvec_cam_from_world", self.rvec.reshape(3, 1))
+        fs.write("tvec_cam_from_world", self.tvec.reshape(3, 1))
+        fs.release()
+
+    @classmethod
+    def load_opencv_yaml(cls, path) -> "Camera":
+        import cv2
+
+        if not Path(path).is_file():
+            raise ValueError(f"{path}: no such OpenCV YAML file")
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        try:
+            K = fs.getNode("camera_matrix").mat()
+            dist = fs.getNode("distortion_coefficients").mat()
+            if K is None or dist is None:
+                raise ValueError(f"{path}: expected nodes 'camera_matrix' and "
+                                 f"'distortion_coefficients'")
+            name_node = fs.getNode("camera_name")
+            name = name_node.string() if not name_node.empty() else Path(path).stem
+            rv, tv = fs.getNode("rvec_cam_from_world"), fs.getNode("tvec_cam_from_world")
+            return cls.from_K(
+                name, int(fs.getNode("image_width").real()), int(fs.getNode("image_height").real()),
+                K, dist.reshape(-1),
+                rv.mat().reshape(-1) if not rv.empty() else np.zeros(3),
+                tv.mat().reshape(-1) if not tv.empty() else np.zeros(3))
+        finally:
+            fs.release()
