@@ -119,6 +119,23 @@ def rotate_jacobian(rvec: np.ndarray, points: np.ndarray) -> np.ndarray:
     return -(R @ Ux) @ M
 
 
+def look_at_rotation(position: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """cam_from_world rotation of a camera at ``position`` looking at ``target``.
+
+    The optical axis (+z) points at the target and ``up`` (a world direction) appears upward in
+    the image, i.e. along -y of the camera (OpenCV's y points down).
+    """
+    z = np.asarray(target, dtype=np.float64) - np.asarray(position, dtype=np.float64)
+    if np.linalg.norm(z) == 0:
+        raise ValueError("look_at: target equals position")
+    z /= np.linalg.norm(z)
+    y = -(np.asarray(up, dtype=np.float64) - (np.asarray(up) @ z) * z)
+    if np.linalg.norm(y) < 1e-9:
+        raise ValueError("look_at: up is parallel to the viewing direction")
+    y /= np.linalg.norm(y)
+    return np.stack([np.cross(y, z), y, z])
+
+
 def compose(R_ab: np.ndarray, t_ab: np.ndarray, R_bc: np.ndarray, t_bc: np.ndarray):
     """a_from_c = a_from_b o b_from_c for (R, t) pairs."""
     return R_ab @ R_bc, R_ab @ t_bc + t_ab

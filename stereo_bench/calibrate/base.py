@@ -1,0 +1,96 @@
+"""What every calibration method consumes and produces.
+
+``Observations`` are one camera's views of a planar board (object points on z = 0, in mm; image
+points in OpenCV pixel centres). A ``Calibrator`` turns them into a ``CalibrationResult``: the
+estimated ``Camera`` (cam_from_world = identity, since a single camera defines its own frame), one
+cam_from_board pose per view, and a log of how the estimate was reached.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from ..camera import Camera
+
+MIN_POINTS_PER_VIEW = 4  # a plane-to-image homography needs four correspondences
+
+
+@dataclass(frozen=True)
+class Observations:
+    """One camera's views of a planar board.
+
+    object_points: per view (N_i, 3) board points in mm with z = 0.
+    image_points:  per view (N_i, 2) detected pixels (OpenCV: top-left pixel centre at (0, 0)).
+    image_size:    (width, height) in pixels.
+    view_ids:      frame index of each view (to pair views with ground truth or other cameras).
+    """
+
+    object_points: list[np.ndarray]
+    image_points: list[np.ndarray]
+    image_size: tuple[int, int]
+    view_ids: list[int]
+    camera_name: str = "camera"
+
+    def __post_init__(self):
+        n = len(self.object_points)
+        if n == 0:
+            raise ValueError(f"observations of {self.camera_name!r}: no views")
+        if len(self.image_points) != n or len(self.view_ids) != n:
+            raise ValueError(
+                f"observations of {self.camera_name!r}: {n} object_points, "
+                f"{len(self.image_points)} image_points and {len(self.view_ids)} view_ids; "
+                f"expected one of each per view")
+        obj, img = [], []
+        for i, (o, p) in enumerate(zip(self.object_points, self.image_points)):
+            o = np.asarray(o, dtype=np.float64).reshape(-1, 3)
+            p = np.asarray(p, dtype=np.float64).reshape(-1, 2)
+            where = f"observations of {self.camera_name!r}, view {self.view_ids[i]}"
+            if len(o) != len(p) or len(o) < MIN_POINTS_PER_VIEW:
+                raise ValueError(f"{where}: {len(o)} object and {len(p)} image points; expected "
+                                 f"equal counts of at least {MIN_POINTS_PER_VIEW}")
+            if not (np.all(np.isfinite(o)) and np.all(np.isfinite(p))):
+                raise ValueError(f"{where}: non-finite coordinates")
+            if np.any(np.abs(o[:, 2]) > 1e-9 * max(1.0, np.abs(o).max())):
+                raise ValueError(f"{where}: object points must lie on the board plane z = 0")
+            obj.append(o)
+            img.append(p)
+        w, h = (int(s) for s in self.image_size)
+        if w <= 0 or h <= 0:
+            raise ValueError(f"observations of {self.camera_name!r}: image_size must be "
+                             f"(width, height) > 0, got {self.image_size}")
+        object.__setattr__(self, "object_points", obj)
+        object.__setattr__(self, "image_points", img)
+        object.__setattr__(self, "image_size", (w, h))
+        object.__setattr__(self, "view_ids", [int(v) for v in self.view_ids])
+
+    @property
+    def n_views(self) -> int:
+        return len(self.object_points)
+
+    @property
+    def n_points(self) -> int:
+        return sum(len(p) for p in self.image_points)
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """An estimated camera plus the board poses found with it.
+
+    rvecs, tvecs: (V, 3) cam_from_board per view, in the order of ``Observations.view_ids``.
+    log: method, iterations, initial/final cost, rms_px, time_s, notes and, when the method ends
+    with refine.py, per-parameter standard deviations and the rank of the intrinsic block.
+    """
+
+    camera: Camera
+    rvecs: np.ndarray
+    tvecs: np.ndarray
+    log: dict = field(default_factory=dict)
+
+
+class Calibrator(Protocol):
+    name: str
+
+    def calibrate(self, obs: Observations) -> CalibrationResult: ...

@@ -1,0 +1,260 @@
+"""Tsai's camera calibration, coplanar case, extended to many views of a planar board.
+
+R. Y. Tsai, "A versatile camera calibration technique for high-accuracy 3D machine vision
+metrology using off-the-shelf TV cameras and lenses", IEEE J. Robotics and Automation RA-3(4),
+1987, section III.D (coplanar set of points). Equation numbers below are the paper's.
+
+Tsai's model, in pixel-sized sensor units (dx = dy = 1, so f is in pixels):
+
+    (Xc, Yc, Zc) = R p_board + T                                    world -> camera    (1)
+    Xu = f Xc / Zc,  Yu = f Yc / Zc                                 pinhole            (2)
+    Xu = Xd (1 + kappa1 r_d^2),  Yu = Yd (1 + kappa1 r_d^2),  r_d^2 = Xd^2 + Yd^2      (3)
+    u = sx Xd + Cx,  v = Yd + Cy                                    pixels             (4)
+
+so fx = sx f and fy = f. The principal point (Cx, Cy) is held at the image centre, which in
+OpenCV pixel centres (top-left pixel centre at (0, 0)) is ((w - 1) / 2, (h - 1) / 2).
+
+Stages (all per view except the last):
+
+1. Radial alignment constraint (RAC), eqs. (10)-(12) coplanar form: (Xd, Yd) is parallel to
+   (Xc, Yc), which is independent of f, Tz and kappa1. One linear least-squares solve for
+   [r1, r2, Tx, r4, r5] / Ty; |Ty| from the 2x2 block C (the paper's closed form); the sign of
+   Ty from the point farthest from the centre; r3, r6 and the third row by orthonormality, the
+   remaining sign by f > 0 (flip r3, r6, r7, r8 if f came out negative). sx is taken as given
+   (1 unless the caller knows better): the RAC cannot determine sx for a plane, not even from
+   many views, because every view adds one unknown (its Ty) for each constraint it adds.
+2. f and Tz linearly from the y equations with kappa1 = 0 (eq. (15)); here f is shared and one
+   Tz per view, stacked into one linear system.
+3. The paper's nonlinear stage over f, Tz and kappa1, in its multi-view form: f, sx and kappa1
+   shared by all views, refined jointly with every 6-DOF pose by the shared bundle adjustment
+   :func:`stereo_bench.calibrate.refine.refine` through :class:`TsaiModel`. Cx, Cy stay fixed
+   unless asked (the coplanar method cannot estimate them).
+
+Relation to OpenCV's distortion. Tsai maps distorted -> undistorted with one coefficient; OpenCV
+maps undistorted normalized (x, y) -> distorted with a polynomial. Tsai's map is exactly radial
+in OpenCV's normalized coordinates x = Xu / f, y = Yu / f (normalized by fx = sx f and fy = f
+respectively), with radial factor rho = r_d / r_u, the root of r_u = r_d (1 + kappa1 r_d^2):
+an algebraic function with no finite polynomial (or rational k1..k6) equivalent. Series inversion
+in dimensionless K = kappa1 f^2 and normalized radius r gives
+
+    rho = 1 - K r^2 + 3 K^2 r^4 - 12 K^3 r^6 + 55 K^4 r^8 - ...     (coefficients (3n)!/(n!(2n+1)!))
+
+so k1 ~ -K, k2 ~ 3 K^2, k3 ~ -12 K^3. :func:`tsai_to_opencv` fits k1, k2, k3 instead by linear
+least squares in pixels over a dense grid of the image (exact Tsai undistortion of each pixel)
+and reports the conversion residual (max and RMS, px), which the calibration log carries.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..camera import Camera, matrix_to_rodrigues
+from .base import CalibrationResult, Observations
+
+PARAM_NAMES = ("f", "sx", "cx", "cy", "kappa1")
+
+
+class TsaiUnreachableError(ValueError):
+    """kappa1 < 0 and a point lies beyond the fold of r_u = r_d (1 + kappa1 r_d^2)."""
+
+
+# ----------------------------------------------------------------------------------------------
+# Tsai's distortion and the projection model
+# ----------------------------------------------------------------------------------------------
+
+def distortion_ratio(q: np.ndarray, kappa1: float, tol: float = 1e-15, max_iter: int = 100):
+    """rho = r_d / r_u for undistorted squared radii q = r_u^2 (sensor units, px^2).
+
+    Solves rho + kappa1 q rho^3 = 1, i.e. eq. (3) with r_d = rho r_u, which stays regular at
+    r_u = 0. Newton from rho = 1 converges monotonically on the increasing branch (the cubic is
+    convex there for kappa1 > 0 and concave for kappa1 < 0, so iterates never cross the root).
+    For kappa1 < 0, r_u(r_d) peaks at r_d^2 = -1 / (3 kappa1); points with kappa1 q <= -4/27
+    have no root on that branch and raise :class:`TsaiUnreachableError`.
+
+    Returns (rho, d rho / d q, d rho / d kappa1), by implicit differentiation.
+    """
+    q = np.asarray(q, dtype=np.float64)
+    kq = kappa1 * q
+    if np.any(kq <= -4.0 / 27.0):
+        bad = np.sqrt(q[kq <= -4.0 / 27.0].max())
+        raise TsaiUnreachableError(
+            f"kappa1 = {kappa1:.6g} folds Tsai's distortion at undistorted radius "
+            f"{2.0 / 3.0 / np.sqrt(-3.0 * kappa1):.6g} px; a point at radius {bad:.6g} px "
+            f"has no distorted image")
+    rho = np.ones_like(q)
+    for _ in range(max_iter):
+        h = rho + kq * rho**3 - 1.0
+        if np.all(np.abs(h) <= tol):
+            break
+        rho = rho - h / (1.0 + 3.0 * kq * rho**2)
+    dh = 1.0 + 3.0 * kq * rho**2  # > 0 on the monotone branch
+    return rho, -kappa1 * rho**3 / dh, -q * rho**3 / dh
+
+
+class TsaiModel:
+    """Tsai's projection (eqs. (2)-(4)) of camera-frame points, for ``refine``.
+
+    params = [f, sx, cx, cy, kappa1] (f in px, kappa1 in px^-2).
+    """
+
+    param_names = PARAM_NAMES
+
+    def project(self, params: np.ndarray, points_cam: np.ndarray):
+        """points_cam (N, 3) -> (uv (N, 2), d uv / d params (N, 2, 5), d uv / d points (N, 2, 3))."""
+        f, sx, cx, cy, k = np.asarray(params, dtype=np.float64)
+        P = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
+        z = P[:, 2]
+        pu = f * P[:, :2] / z[:, None]                     # (Xu, Yu)
+        q = np.sum(pu * pu, axis=1)
+        rho, rho_q, rho_k = distortion_ratio(q, k)
+        pd = rho[:, None] * pu                             # (Xd, Yd)
+        S = np.array([sx, 1.0])
+        uv = pd * S + np.array([cx, cy])
+
+        # d(Xd, Yd) / d(Xu, Yu) = rho I + 2 rho_q pu pu^T
+        Jd = rho[:, None, None] * np.eye(2) + 2 * rho_q[:, None, None] * pu[:, :, None] * pu[:, None, :]
+        Jp = np.zeros((len(P), 2, 5))
+        Jp[:, :, 0] = np.einsum("nij,nj->ni", Jd, pu / f) * S   # d pu / d f = pu / f
+        Jp[:, 0, 1] = pd[:, 0]
+        Jp[:, 0, 2] = 1.0
+        Jp[:, 1, 3] = 1.0
+        Jp[:, :, 4] = rho_k[:, None] * pu * S
+        Ju = np.zeros((len(P), 2, 3))                      # d pu / d points
+        Ju[:, 0, 0] = Ju[:, 1, 1] = f / z
+        Ju[:, :, 2] = -pu / z[:, None]
+        Jx = S[None, :, None] * (Jd @ Ju)
+        return uv, Jp, Jx
+
+
+# ----------------------------------------------------------------------------------------------
+# Closed-form stages
+# ----------------------------------------------------------------------------------------------
+
+def radial_alignment_pose(board_xy: np.ndarray, sensor_d: np.ndarray):
+    """Stage 1 for one view: R (3, 3), Tx, Ty from the radial alignment constraint.
+
+    board_xy (N, 2): board points (z = 0), mm. sensor_d (N, 2): distorted sensor coordinates
+    (Xd, Yd) relative to the principal point, px. R's third column is fixed up to the f > 0
+    choice, which :func:`focal_and_tz` makes; the returned R is the r3 >= 0 branch.
+    """
+    xw, yw = board_xy[:, 0], board_xy[:, 1]
+    Xd, Yd = sensor_d[:, 0], sensor_d[:, 1]
+    # Eq. (10) coplanar: Yd xw r1' + Yd yw r2' + Yd Tx' - Xd xw r4' - Xd yw r5' = Xd.
+    A = np.stack([Yd * xw, Yd * yw, Yd, -Xd * xw, -Xd * yw], 1)
+    sol, _, rank, _ = np.linalg.lstsq(A, Xd, rcond=None)
+    if rank < 5:
+        raise ValueError(f"radial alignment: rank {rank} < 5 (need >= 5 points in general "
+                         f"position, not all on a line through the image centre)")
+    r1p, r2p, txp, r4p, r5p = sol
+    # |Ty| (eq. (12)): 1/Ty^2 is the larger squared singular value of C = [[r1', r2'], [r4', r5']].
+    C = np.array([[r1p, r2p], [r4p, r5p]])
+    Sr = float(np.sum(C * C))
+    det = float(np.linalg.det(C))
+    if abs(det) > 1e-12 * Sr:
+        ty2 = (Sr - np.sqrt(max(Sr * Sr - 4 * det * det, 0.0))) / (2 * det * det)
+    else:  # a row or column of C vanishes (or C is rank one): the norm of the non-zero part
+        ty2 = 1.0 / Sr
+    ty = np.sqrt(ty2)
+    # Sign of Ty: with Ty > 0 the farthest point's (Xc, Yc) must point the way (Xd, Yd) does.
+    i = np.argmax(Xd * Xd + Yd * Yd)
+    xc = (r1p * xw[i] + r2p * yw[i] + txp) * ty
+    yc = (r4p * xw[i] + r5p * yw[i] + 1.0) * ty
+    if xc * Xd[i] + yc * Yd[i] < 0:
+        ty = -ty
+    r1, r2, tx, r4, r5 = r1p * ty, r2p * ty, txp * ty, r4p * ty, r5p * ty
+    r3 = np.sqrt(max(1.0 - r1 * r1 - r2 * r2, 0.0))
+    r6 = -np.sign(r1 * r4 + r2 * r5) * np.sqrt(max(1.0 - r4 * r4 - r5 * r5, 0.0))
+    row1, row2 = np.array([r1, r2, r3]), np.array([r4, r5, r6])
+    R = np.stack([row1, row2, np.cross(row1, row2)])
+    return R, float(tx), float(ty)
+
+
+def focal_and_tz(board_xy: list[np.ndarray], Yd: list[np.ndarray], Rs: list[np.ndarray],
+                 tys: list[float]):
+    """Stage 2: shared f and per-view Tz from eq. (15) with kappa1 = 0, one linear solve.
+
+    Per point: [y_i, -Yd_i] [f, Tz]^T = w_i Yd_i with y_i = r4 xw + r5 yw + Ty and
+    w_i = r7 xw + r8 yw. Returns (f, tz (V,)).
+    """
+    V = len(Rs)
+    rows, rhs = [], []
+    for v, (xy, yd, R, ty) in enumerate(zip(board_xy, Yd, Rs, tys)):
+        y = xy @ R[1, :2] + ty
+        w = xy @ R[2, :2]
+        block = np.zeros((len(xy), V + 1))
+        block[:, 0] = y
+        block[:, 1 + v] = -yd
+        rows.append(block)
+        rhs.append(w * yd)
+    A, b = np.concatenate(rows), np.concatenate(rhs)
+    scale = np.linalg.norm(A, axis=0)
+    sol, _, rank, _ = np.linalg.lstsq(A / scale, b, rcond=None)
+    if rank < V + 1:
+        raise ValueError("Tsai stage 2: f and Tz are not separable; at least one view must "
+                         "tilt the board against the image plane")
+    sol = sol / scale
+    return float(sol[0]), sol[1:]
+
+
+def flip_for_positive_f(R: np.ndarray) -> np.ndarray:
+    """The other RAC branch: r3, r6, r7, r8 change sign (the paper's rule when f < 0)."""
+    return R * np.array([[1, 1, -1], [1, 1, -1], [-1, -1, 1]])
+
+
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """Closest rotation (Frobenius) to M; removes the non-orthogonality noise leaves in stage 1."""
+    U, _, Vt = np.linalg.svd(M)
+    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+
+
+# ----------------------------------------------------------------------------------------------
+# Conversion to OpenCV's model
+# ----------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class ConversionReport:
+    """How well OpenCV's k1, k2, k3 reproduce Tsai's exact map over the image (pixels)."""
+
+    max_px: float
+    rms_px: float
+    series_k: tuple[float, float, float]  # -K, 3K^2, -12K^3 with K = kappa1 f^2
+
+
+def tsai_to_opencv(params: np.ndarray, width: int, height: int, name: str = "camera",
+                   grid: int = 161) -> tuple[Camera, ConversionReport]:
+    """Camera with fx = sx f, fy = f and OpenCV k1, k2, k3 fitted to Tsai's distortion.
+
+    Every pixel of a grid x grid lattice over the image (borders and corners included) is
+    undistorted exactly by eq. (3); k1..k3 minimise, linearly, the pixel distance between
+    OpenCV's forward projection of that undistorted point and the pixel itself.
+    """
+    f, sx, cx, cy, k = np.asarray(params, dtype=np.float64)
+    u, v = np.meshgrid(np.linspace(0, width - 1, grid), np.linspace(0, height - 1, grid))
+    pd = np.stack([(u.ravel() - cx) / sx, v.ravel() - cy], 1)
+    rd2 = np.sum(pd * pd, axis=1)
+    if k < 0 and rd2.max() * -3.0 * k >= 1.0:
+        raise TsaiUnreachableError(
+            f"kappa1 = {k:.6g} folds Tsai's distortion inside the {width}x{height} image "
+            f"(at distorted radius {1 / np.sqrt(-3 * k):.6g} px); no OpenCV equivalent")
+    xy = pd * (1.0 + k * rd2)[:, None] / f            # undistorted normalized
+    r2 = np.sum(xy * xy, axis=1)
+    rho = 1.0 / (1.0 + k * rd2)                        # exact OpenCV radial factor wanted
+    fxy = np.array([sx * f, f])
+    # Pixel residual of OpenCV's map: fxy * xy * (1 + k1 r2 + k2 r2^2 + k3 r2^3 - rho).
+    a = (fxy * xy).T.reshape(-1)                      # u rows, then v rows
+    r2a = np.concatenate([r2, r2])
+    A = a[:, None] * np.stack([r2a, r2a**2, r2a**3], 1)
+    b = a * (np.concatenate([rho, rho]) - 1.0)
+    scale = np.linalg.norm(A, axis=0)
+    kk = np.linalg.lstsq(A / np.where(scale > 0, scale, 1.0), b, rcond=None)[0] / np.where(
+        scale > 0, scale, 1.0)
+    res = (A @ kk - b).reshape(2, -1)
+    err = np.hypot(res[0], res[1])
+    K = k * f * f
+    cam = Camera(name, width, height, sx * f, f, cx, cy, 0.0,
+                 np.array([kk[0], kk[1], 0, 0, kk[2], 0, 0, 0]))
+    return cam, ConversionReport(float(err.max()), float(np.sqrt(np.mean(err**2))),
+                                 (-K, 3 * K * K, -12 * K**3))

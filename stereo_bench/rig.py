@@ -1,0 +1,186 @@
+"""A rig in motion: true cameras, the board, and the paper's conical-spring trajectory.
+
+The board centre follows a helix around the rig's viewing axis whose radius grows linearly with
+depth (a conical spring, paper Sec. 2), with the board always facing the rig's centre and
+tilted by a fixed angle about an axis that turns at a different rate than the helix, plus an
+in-plane roll, so that the views span the orientations planar calibration needs (Zhang 2000:
+views must not be parallel). Ground truth: per camera and frame, the true image positions of
+the board's feature points and whether each one is seen.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .camera import Camera, matrix_to_rodrigues, radial_fold_radius, rodrigues_to_matrix
+from .config import RigConfig, TrajectoryConfig
+from .patterns import pattern_from_config
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """world_from_board per frame: rotations as Rodrigues vectors (F,3), translations (F,3) mm."""
+
+    rvecs: np.ndarray
+    tvecs: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.rvecs)
+
+    @property
+    def rotations(self) -> np.ndarray:
+        return rodrigues_to_matrix(self.rvecs)
+
+
+def _axis_angle(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    return rodrigues_to_matrix(axis * angle[..., None])
+
+
+def narrowest_half_fov(cameras: list[Camera]) -> float:
+    """tan of the smallest half field of view over the cameras (edge midpoints, undistorted)."""
+    tans = []
+    for cam in cameras:
+        w, h = cam.width - 1, cam.height - 1
+        mid = np.array([[0, h / 2], [w, h / 2], [w / 2, 0], [w / 2, h]])
+        tans.append(np.abs(cam.unproject(mid)).max(axis=1).min())
+    return float(min(tans))
+
+
+def spring_extent(cameras: list[Camera], board_radius: float, cfg: TrajectoryConfig):
+    """Depth and radius ranges (mm) of the spring; unset ones keep the board in view.
+
+    The near end makes the board's circumscribed circle as wide as the narrowest field of view
+    (so the board fills it; the tilt keeps the corners in), the far end is twice as deep, and the
+    spring's radius uses 70 % of the room the field of view leaves around the board at each
+    depth. Frames where part of the board still leaves an image are reported, not hidden.
+    """
+    tan = narrowest_half_fov(cameras)
+    near = board_radius / (1.05 * tan)
+    depth = cfg.depth_mm or (near, 2.0 * near)
+    room = [max(0.0, 0.7 * (tan * d - board_radius)) for d in depth]
+    return depth, cfg.radius_mm or tuple(room)
+
+
+def conical_spring(
+    cameras: list[Camera], board_centre: np.ndarray, board_radius: float, cfg: TrajectoryConfig
+) -> Trajectory:
+    """world_from_board poses along the conical spring in front of ``cameras``.
+
+    ``board_centre`` (3,) is the board-frame point that travels on the spring (the middle of the
+    feature points), ``board_radius`` the radius (mm) of the board outline around it. Depth is measured along the rig's mean optical axis from the mean camera
+    centre.
+    """
+    centres = np.stack([c.center for c in cameras])
+    rig_centre = centres.mean(0)
+    axis = np.stack([c.R[2] for c in cameras]).mean(0)
+    axis /= np.linalg.norm(axis)
+    # Image "right" of the rig, orthogonal to the axis: keeps the board upright in the images.
+    right = np.stack([c.R[0] for c in cameras]).mean(0)
+    right -= (right @ axis) * axis
+    right /= np.linalg.norm(right)
+    down = np.cross(axis, right)
+
+    (d0, d1), (r0, r1) = spring_extent(cameras, board_radius, cfg)
+    s = np.linspace(0.0, 1.0, cfg.frames)
+    phi = 2 * np.pi * cfg.turns * s
+    depth = d0 + (d1 - d0) * s
+    radius = r0 + (r1 - r0) * s
+    p = (rig_centre + depth[:, None] * axis
+         + radius[:, None] * (np.cos(phi)[:, None] * right + np.sin(phi)[:, None] * down))
+
+    # Facing frame: z from the rig centre through the board centre (OpenCV boards have +z
+    # pointing away from a camera that sees their front), x as close to the rig's right as can be.
+    z = p - rig_centre
+    z /= np.linalg.norm(z, axis=1, keepdims=True)
+    x = right - (z @ right)[:, None] * z
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    y = np.cross(z, x)
+    facing = np.stack([x, y, z], axis=-1)  # columns: board axes in world
+
+    # Tilt about an in-plane axis turning 2.7x faster than the helix (incommensurate, so the
+    # tilt directions do not repeat with the spring), then roll about the board normal.
+    psi = 2.7 * phi
+    tilt_axis = np.stack([np.cos(psi), np.sin(psi), np.zeros_like(psi)], -1)
+    tilt = _axis_angle(tilt_axis, np.full_like(psi, np.radians(cfg.tilt_deg)))
+    roll = _axis_angle(np.array([0.0, 0.0, 1.0]), np.radians(cfg.roll_deg) * np.sin(1.3 * phi))
+    R = facing @ tilt @ roll
+    t = p - R @ board_centre
+    return Trajectory(matrix_to_rodrigues(R), t)
+
+
+@dataclass(frozen=True, eq=False)
+class GroundTruth:
+    """Exact image positions of the feature points.
+
+    points: (C, F, N, 2) px, OpenCV pixel centres; visible: (C, F, N) bool — in front of the
+    camera, on the board's front side, inside the image and inside the distortion's valid radius.
+    """
+
+    points: np.ndarray
+    visible: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Rig:
+    """Everything a render needs: the true cameras, the board and its trajectory."""
+
+    name: str
+    seed: int
+    cameras: list[Camera]
+    pattern: object
+    trajectory: Trajectory
+
+    @classmethod
+    def from_config(cls, cfg: RigConfig) -> "Rig":
+        cameras = cfg.cameras_true()
+        for cam in cameras:
+            cam.check_invertible(step=max(cam.width // 64, 4))
+        pattern = pattern_from_config(cfg.pattern.kind, **cfg.pattern.overrides())
+        obj = pattern.object_points()
+        centre = 0.5 * (obj.min(0) + obj.max(0))
+        w, h = pattern.size_mm
+        return cls(cfg.name, cfg.seed, cameras, pattern,
+                   conical_spring(cameras, centre, 0.5 * np.hypot(w, h), cfg.trajectory))
+
+    def board_points_world(self) -> np.ndarray:
+        """Feature points in the world per frame, (F, N, 3) mm."""
+        obj = self.pattern.object_points()
+        R = self.trajectory.rotations
+        return np.einsum("fij,nj->fni", R, obj) + self.trajectory.tvecs[:, None, :]
+
+    def cam_from_board(self, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
+        """Per-frame cam_from_board as (R (F,3,3), t (F,3))."""
+        Rwb = self.trajectory.rotations
+        R = cam.R @ Rwb
+        t = (cam.R @ self.trajectory.tvecs.T).T + cam.tvec
+        return R, t
+
+    def ground_truth(self) -> GroundTruth:
+        Xw = self.board_points_world()
+        F, N, _ = Xw.shape
+        pts = np.zeros((len(self.cameras), F, N, 2))
+        vis = np.zeros((len(self.cameras), F, N), dtype=bool)
+        for c, cam in enumerate(self.cameras):
+            Pc = cam.world_to_cam(Xw)
+            R, _ = self.cam_from_board(cam)
+            # Front side: the board's +z points away from the camera.
+            normal_cam = R[:, :, 2]
+            front = np.einsum("fi,fni->fn", normal_cam, Pc) > 0
+            z = Pc[..., 2]
+            ahead = z > 1e-6
+            xy = Pc[..., :2] / np.where(ahead, z, 1.0)[..., None]
+            valid = np.linalg.norm(xy, axis=-1) < radial_fold_radius(cam.dist)
+            uv = cam.normalized_to_pixels(xy)
+            inside = ((uv[..., 0] >= 0) & (uv[..., 0] <= cam.width - 1)
+                      & (uv[..., 1] >= 0) & (uv[..., 1] <= cam.height - 1))
+            pts[c] = uv
+            vis[c] = front & ahead & valid & inside
+        return GroundTruth(pts, vis)
+
+    def frames_out_of_view(self, gt: GroundTruth | None = None) -> dict[str, list[int]]:
+        """Per camera, the frames in which part of the board is not seen."""
+        gt = gt or self.ground_truth()
+        return {cam.name: np.flatnonzero(~gt.visible[c].all(axis=1)).tolist()
+                for c, cam in enumerate(self.cameras)}
