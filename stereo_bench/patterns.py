@@ -158,7 +158,7 @@ class Pattern(abc.ABC):
 
     def texture_shape(self, px_per_mm: float) -> tuple[int, int]:
         """(H, W) of ``texture(px_per_mm)``: the outline, rounded up to whole texels."""
-        # The 1e-9 tolerance keeps e.g. 155 mm * 8 px/mm = 1240.0000000001 at 1240 texels.
+        # The 1e-9 absorbs float rounding of a whole product, which would otherwise add a texel.
         width, height = self.size_mm
         return (math.ceil(height * px_per_mm - 1e-9), math.ceil(width * px_per_mm - 1e-9))
 
@@ -353,7 +353,8 @@ class Charuco(Pattern):
                 raise ValueError(f"{self.kind}: {field} must be at least 3")
         if self.marker_mm >= self.square_mm:
             raise ValueError(f"{self.kind}: marker_mm must be below square_mm")
-        if not self.dictionary.startswith("DICT_") or not hasattr(cv2.aruco, self.dictionary):
+        name = self.dictionary
+        if not (isinstance(name, str) and name.startswith("DICT_") and hasattr(cv2.aruco, name)):
             raise ValueError(f"{self.kind}: dictionary {self.dictionary!r} is not a cv2.aruco DICT_*")
         if self.aruco_dictionary().bytesList.shape[0] < self._marker_count():
             raise ValueError(f"{self.kind}: dictionary {self.dictionary} has too few markers")

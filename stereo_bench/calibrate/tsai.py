@@ -53,6 +53,7 @@ import numpy as np
 
 from ..camera import Camera, matrix_to_rodrigues
 from .base import CalibrationResult, Observations
+from .refine import refine
 
 PARAM_NAMES = ("f", "sx", "cx", "cy", "kappa1")
 
@@ -65,31 +66,32 @@ class TsaiUnreachableError(ValueError):
 # Tsai's distortion and the projection model
 # ----------------------------------------------------------------------------------------------
 
-def distortion_ratio(q: np.ndarray, kappa1: float, tol: float = 1e-15, max_iter: int = 100):
+def distortion_ratio(q: np.ndarray, kappa1: float, strict: bool = True, max_iter: int = 100):
     """rho = r_d / r_u for undistorted squared radii q = r_u^2 (sensor units, px^2).
 
     Solves rho + kappa1 q rho^3 = 1, i.e. eq. (3) with r_d = rho r_u, which stays regular at
     r_u = 0. Newton from rho = 1 converges monotonically on the increasing branch (the cubic is
     convex there for kappa1 > 0 and concave for kappa1 < 0, so iterates never cross the root).
     For kappa1 < 0, r_u(r_d) peaks at r_d^2 = -1 / (3 kappa1); points with kappa1 q <= -4/27
-    have no root on that branch and raise :class:`TsaiUnreachableError`.
+    have no root on that branch: :class:`TsaiUnreachableError` if ``strict``, else NaN.
 
     Returns (rho, d rho / d q, d rho / d kappa1), by implicit differentiation.
     """
     q = np.asarray(q, dtype=np.float64)
     kq = kappa1 * q
-    if np.any(kq <= -4.0 / 27.0):
-        bad = np.sqrt(q[kq <= -4.0 / 27.0].max())
+    bad = kq <= -4.0 / 27.0
+    if strict and np.any(bad):
         raise TsaiUnreachableError(
-            f"kappa1 = {kappa1:.6g} folds Tsai's distortion at undistorted radius "
-            f"{2.0 / 3.0 / np.sqrt(-3.0 * kappa1):.6g} px; a point at radius {bad:.6g} px "
-            f"has no distorted image")
+            f"kappa1 = {kappa1:.6g} px^-2 folds Tsai's distortion at undistorted radius "
+            f"{2.0 / 3.0 / np.sqrt(-3.0 * kappa1):.6g} px; {int(bad.sum())} points (up to "
+            f"radius {np.sqrt(q[bad].max()):.6g} px) have no distorted image")
+    kq = np.where(bad, np.nan, kq)
     rho = np.ones_like(q)
     for _ in range(max_iter):
-        h = rho + kq * rho**3 - 1.0
-        if np.all(np.abs(h) <= tol):
+        step = (rho + kq * rho**3 - 1.0) / (1.0 + 3.0 * kq * rho**2)
+        rho = rho - step
+        if not np.any(np.abs(step) > 1e-12):  # quadratic convergence: the next error is ~1e-24
             break
-        rho = rho - h / (1.0 + 3.0 * kq * rho**2)
     dh = 1.0 + 3.0 * kq * rho**2  # > 0 on the monotone branch
     return rho, -kappa1 * rho**3 / dh, -q * rho**3 / dh
 
@@ -97,10 +99,15 @@ def distortion_ratio(q: np.ndarray, kappa1: float, tol: float = 1e-15, max_iter:
 class TsaiModel:
     """Tsai's projection (eqs. (2)-(4)) of camera-frame points, for ``refine``.
 
-    params = [f, sx, cx, cy, kappa1] (f in px, kappa1 in px^-2).
+    params = [f, sx, cx, cy, kappa1] (f in px, kappa1 in px^-2). With ``strict=False`` points
+    beyond the fold of a negative kappa1 project to NaN instead of raising, so that a trial step
+    of refine's Levenberg-Marquardt that crosses the fold is rejected rather than fatal.
     """
 
     param_names = PARAM_NAMES
+
+    def __init__(self, strict: bool = True):
+        self.strict = strict
 
     def project(self, params: np.ndarray, points_cam: np.ndarray):
         """points_cam (N, 3) -> (uv (N, 2), d uv / d params (N, 2, 5), d uv / d points (N, 2, 3))."""
@@ -109,7 +116,7 @@ class TsaiModel:
         z = P[:, 2]
         pu = f * P[:, :2] / z[:, None]                     # (Xu, Yu)
         q = np.sum(pu * pu, axis=1)
-        rho, rho_q, rho_k = distortion_ratio(q, k)
+        rho, rho_q, rho_k = distortion_ratio(q, k, self.strict)
         pd = rho[:, None] * pu                             # (Xd, Yd)
         S = np.array([sx, 1.0])
         uv = pd * S + np.array([cx, cy])
@@ -153,11 +160,9 @@ def radial_alignment_pose(board_xy: np.ndarray, sensor_d: np.ndarray):
     C = np.array([[r1p, r2p], [r4p, r5p]])
     Sr = float(np.sum(C * C))
     det = float(np.linalg.det(C))
-    if abs(det) > 1e-12 * Sr:
-        ty2 = (Sr - np.sqrt(max(Sr * Sr - 4 * det * det, 0.0))) / (2 * det * det)
-    else:  # a row or column of C vanishes (or C is rank one): the norm of the non-zero part
-        ty2 = 1.0 / Sr
-    ty = np.sqrt(ty2)
+    # The paper's Ty^2 = (Sr - sqrt(Sr^2 - 4 det^2)) / (2 det^2), rationalized to avoid the
+    # cancellation as det -> 0; at det = 0 it is the paper's other case, 1 / (ri'^2 + rj'^2).
+    ty = np.sqrt(2.0 / (Sr + np.sqrt(max(Sr * Sr - 4 * det * det, 0.0))))
     # Sign of Ty: with Ty > 0 the farthest point's (Xc, Yc) must point the way (Xd, Yd) does.
     i = np.argmax(Xd * Xd + Yd * Yd)
     xc = (r1p * xw[i] + r2p * yw[i] + txp) * ty
@@ -166,7 +171,8 @@ def radial_alignment_pose(board_xy: np.ndarray, sensor_d: np.ndarray):
         ty = -ty
     r1, r2, tx, r4, r5 = r1p * ty, r2p * ty, txp * ty, r4p * ty, r5p * ty
     r3 = np.sqrt(max(1.0 - r1 * r1 - r2 * r2, 0.0))
-    r6 = -np.sign(r1 * r4 + r2 * r5) * np.sqrt(max(1.0 - r4 * r4 - r5 * r5, 0.0))
+    # r6 = -sgn(r1 r4 + r2 r5) sqrt(...); at a tie (r3 = 0) either sign, the f > 0 test decides.
+    r6 = np.copysign(np.sqrt(max(1.0 - r4 * r4 - r5 * r5, 0.0)), -(r1 * r4 + r2 * r5))
     row1, row2 = np.array([r1, r2, r3]), np.array([r4, r5, r6])
     R = np.stack([row1, row2, np.cross(row1, row2)])
     return R, float(tx), float(ty)
@@ -258,3 +264,72 @@ def tsai_to_opencv(params: np.ndarray, width: int, height: int, name: str = "cam
                  np.array([kk[0], kk[1], 0, 0, kk[2], 0, 0, 0]))
     return cam, ConversionReport(float(err.max()), float(np.sqrt(np.mean(err**2))),
                                  (-K, 3 * K * K, -12 * K**3))
+
+
+# ----------------------------------------------------------------------------------------------
+# The calibrator
+# ----------------------------------------------------------------------------------------------
+
+class TsaiCalibrator:
+    """Tsai's coplanar calibration over many views (stages in the module docstring).
+
+    sx: a known horizontal scale factor to hold fixed; None (default) starts at 1, as Tsai
+    assumes for coplanar targets, and estimates it in the joint refinement.
+    free_principal_point: also refine Cx, Cy (Tsai's method keeps them at the image centre).
+    """
+
+    name = "tsai"
+
+    def __init__(self, sx: float | None = None, free_principal_point: bool = False,
+                 max_iter: int = 100):
+        self.sx = sx
+        self.free_principal_point = free_principal_point
+        self.max_iter = max_iter
+
+    def calibrate(self, obs: Observations) -> CalibrationResult:
+        t0 = time.perf_counter()
+        w, h = obs.image_size
+        cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+        sx0 = 1.0 if self.sx is None else float(self.sx)
+        board = [o[:, :2] for o in obs.object_points]
+        sensor = [np.stack([(p[:, 0] - cx) / sx0, p[:, 1] - cy], 1) for p in obs.image_points]
+
+        Rs, txs, tys = [], [], []
+        for vid, xy, d in zip(obs.view_ids, board, sensor):
+            where = f"Tsai calibration of {obs.camera_name!r}, view {vid}"
+            try:
+                R, tx, ty = radial_alignment_pose(xy, d)
+                f_view, _ = focal_and_tz([xy], [d[:, 1]], [R], [ty])
+            except ValueError as e:
+                raise ValueError(f"{where}: {e}") from None
+            Rs.append(flip_for_positive_f(R) if f_view < 0 else R)
+            txs.append(tx)
+            tys.append(ty)
+        f0, tz0 = focal_and_tz(board, [d[:, 1] for d in sensor], Rs, tys)
+        behind = [vid for vid, tz in zip(obs.view_ids, tz0) if tz <= 0]
+        if f0 <= 0 or behind:
+            raise ValueError(f"Tsai calibration of {obs.camera_name!r}: stage 2 gave f = "
+                             f"{f0:.6g} px and the board behind the camera in views {behind}")
+
+        params0 = np.array([f0, sx0, cx, cy, 0.0])
+        free = np.array([True, self.sx is None] + [self.free_principal_point] * 2 + [True])
+        rvecs0 = matrix_to_rodrigues(np.stack([nearest_rotation(R) for R in Rs]))
+        tvecs0 = np.stack([txs, tys, tz0], 1)
+        res = refine(TsaiModel(strict=False), params0, free, obs.object_points,
+                     obs.image_points, rvecs0, tvecs0, max_iter=self.max_iter)
+        camera, conv = tsai_to_opencv(res.params, w, h, obs.camera_name)
+        f, sx, _, _, kappa1 = res.params
+        log = {
+            "method": self.name,
+            **res.log(),
+            "tsai": dict(zip(PARAM_NAMES, map(float, res.params))),
+            "kappa1_f2": float(kappa1 * f * f),
+            "initial": {"f": f0, "sx": sx0},
+            "principal_point": "free" if self.free_principal_point else
+                               "fixed at the image centre ((w - 1) / 2, (h - 1) / 2)",
+            "opencv_conversion": {"max_px": conv.max_px, "rms_px": conv.rms_px,
+                                  "k1_k2_k3": camera.dist[[0, 1, 4]].tolist(),
+                                  "series_k1_k2_k3": list(conv.series_k)},
+            "time_s": time.perf_counter() - t0,
+        }
+        return CalibrationResult(camera, res.rvecs, res.tvecs, log)
