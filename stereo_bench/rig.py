@@ -51,15 +51,15 @@ def narrowest_half_fov(cameras: list[Camera]) -> float:
 def spring_extent(cameras: list[Camera], board_radius: float, cfg: TrajectoryConfig):
     """Depth and radius ranges (mm) of the spring; unset ones keep the board in view.
 
-    The near end makes the board's circumscribed circle as wide as the narrowest field of view
-    (so the board fills it; the tilt keeps the corners in), the far end is twice as deep, and the
-    spring's radius uses 70 % of the room the field of view leaves around the board at each
+    At the near end the board's circumscribed circle spans 90 % of the narrowest field of view
+    (the board nearly fills it; the tilt keeps its corners in), the far end is twice as deep, and
+    the spring's radius uses 60 % of the room the field of view leaves around the board at each
     depth. Frames where part of the board still leaves an image are reported, not hidden.
     """
     tan = narrowest_half_fov(cameras)
-    near = board_radius / (1.05 * tan)
+    near = board_radius / (0.9 * tan)
     depth = cfg.depth_mm or (near, 2.0 * near)
-    room = [max(0.0, 0.7 * (tan * d - board_radius)) for d in depth]
+    room = [max(0.0, 0.6 * (tan * d - board_radius)) for d in depth]
     return depth, cfg.radius_mm or tuple(room)
 
 

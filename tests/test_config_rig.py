@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from stereo_bench.config import ConfigError, load_rig, parse_rig
-from stereo_bench.rig import Rig
+from stereo_bench.rig import Rig, spring_extent
 
 CONFIGS = sorted(Path(__file__).parent.parent.joinpath("configs").rglob("*.yaml"))
 QUICK = Path(__file__).parent.parent / "configs" / "quickstart.yaml"
@@ -67,10 +67,13 @@ def test_trajectory_is_a_conical_spring_facing_the_rig():
     obj = rig.pattern.object_points()
     centre = 0.5 * (obj.min(0) + obj.max(0))
     p = np.einsum("fij,j->fi", rig.trajectory.rotations, centre) + rig.trajectory.tvecs
-    # Depth grows linearly along the rig axis (world z here) from near to far.
-    assert np.allclose(p[:, 2], np.linspace(*cfg.trajectory.depth_mm, cfg.trajectory.frames))
+    w, h = rig.pattern.size_mm
+    depth, radii = spring_extent(rig.cameras, 0.5 * np.hypot(w, h), cfg.trajectory)
+    # Depth grows linearly along the rig axis (world z here) from near to far, and so does the
+    # radius of the helix around it.
+    assert np.allclose(p[:, 2], np.linspace(*depth, cfg.trajectory.frames))
     radius = np.linalg.norm(p[:, :2], axis=1)
-    assert np.allclose(radius, np.linspace(*cfg.trajectory.radius_mm, cfg.trajectory.frames))
+    assert np.allclose(radius, np.linspace(*radii, cfg.trajectory.frames))
     # Board normal makes exactly the configured tilt with the line of sight to the rig centre.
     normal = rig.trajectory.rotations[:, :, 2]
     sight = p / np.linalg.norm(p, axis=1, keepdims=True)

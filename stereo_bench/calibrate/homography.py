@@ -33,7 +33,7 @@ def _dlt(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
         np.stack([x, y, one, zero, zero, zero, -u * x, -u * y, -u], -1),
         np.stack([zero, zero, zero, x, y, one, -v * x, -v * y, -v], -1),
     ])
-    return np.linalg.svd(A)[2][-1].reshape(3, 3)
+    return np.linalg.svd(A, full_matrices=False)[2][-1].reshape(3, 3)
 
 
 def _refine(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -61,6 +61,9 @@ def _refine(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 
 def fit_homography(src: np.ndarray, dst: np.ndarray, refine: bool = True) -> np.ndarray:
     """H (3, 3), H[2, 2] = 1, with dst ~ H src, from N >= 4 correspondences (N, 2).
+
+    For a board seen by a camera, H ~ K [r1 r2 t] and H[2, 2] ~ t_z: the positive gauge is also the
+    sign that puts the board origin in front of the camera.
 
     The refinement runs in Hartley-normalized coordinates: the image normalization is a
     similarity, so the least-squares problem is the same up to a constant factor, and the eight

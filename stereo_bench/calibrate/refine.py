@@ -121,7 +121,7 @@ class _Problem:
 
     def residuals(self, params, rvecs, tvecs, jacobians=False):
         R = rodrigues_to_matrix(rvecs)[self.view]
-        points_cam = np.einsum("nij,nj->ni", R, self.points) + tvecs[self.view]
+        points_cam = (R @ self.points[:, :, None])[:, :, 0] + tvecs[self.view]
         uv, J_params, J_point = self.model.project(params, points_cam)
         r = uv - self.observed
         if not jacobians:
@@ -133,13 +133,11 @@ class _Problem:
 
     def normal_equations(self, r, Ja, Jb):
         """Blocks of J^T J and J^T r: U (F,F), V (views,6,6), W (views,F,6), ga (F,), gb (views,6)."""
-        per_view = lambda x: np.add.reduceat(x, self.starts, axis=0)
-        U = np.einsum("nki,nkj->ij", Ja, Ja)
-        V = per_view(np.einsum("nki,nkj->nij", Jb, Jb))
-        W = per_view(np.einsum("nki,nkj->nij", Ja, Jb))
-        ga = np.einsum("nki,nk->i", Ja, r)
-        gb = per_view(np.einsum("nki,nk->ni", Jb, r))
-        return U, V, W, ga, gb
+        Ja, Jb, r = Ja.reshape(r.size, Ja.shape[-1]), Jb.reshape(r.size, 6), r.reshape(-1)
+        blocks = [(Jb[2 * a:2 * b].T @ Jb[2 * a:2 * b], Ja[2 * a:2 * b].T @ Jb[2 * a:2 * b],
+                   Jb[2 * a:2 * b].T @ r[2 * a:2 * b]) for a, b in self.bounds]
+        V, W, gb = (np.array(x) for x in zip(*blocks))
+        return Ja.T @ Ja, V, W, Ja.T @ r, gb
 
 
 def _schur(U, V, W):

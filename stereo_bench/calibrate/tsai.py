@@ -14,7 +14,7 @@ Tsai's model, in pixel-sized sensor units (dx = dy = 1, so f is in pixels):
 so fx = sx f and fy = f. The principal point (Cx, Cy) is held at the image centre, which in
 OpenCV pixel centres (top-left pixel centre at (0, 0)) is ((w - 1) / 2, (h - 1) / 2).
 
-Stages (all per view except the last):
+Stages (the first per view, the others over all views):
 
 1. Radial alignment constraint (RAC), eqs. (10)-(12) coplanar form: (Xd, Yd) is parallel to
    (Xc, Yc), which is independent of f, Tz and kappa1. One linear least-squares solve for
@@ -23,8 +23,8 @@ Stages (all per view except the last):
    remaining sign by f > 0 (flip r3, r6, r7, r8 if f came out negative). sx is taken as given
    (1 unless the caller knows better): the RAC cannot determine sx for a plane, not even from
    many views, because every view adds one unknown (its Ty) for each constraint it adds.
-2. f and Tz linearly from the y equations with kappa1 = 0 (eq. (15)); here f is shared and one
-   Tz per view, stacked into one linear system.
+2. f and Tz linearly from the y equations with kappa1 = 0 (eq. (15)); here f is shared and each
+   view has its own Tz (eliminated in closed form, so one equation remains for f).
 3. The paper's nonlinear stage over f, Tz and kappa1, in its multi-view form: f, sx and kappa1
    shared by all views, refined jointly with every 6-DOF pose by the shared bundle adjustment
    :func:`stereo_bench.calibrate.refine.refine` through :class:`TsaiModel`. Cx, Cy stay fixed
@@ -110,7 +110,7 @@ class TsaiModel:
         self.strict = strict
 
     def project(self, params: np.ndarray, points_cam: np.ndarray):
-        """points_cam (N, 3) -> (uv (N, 2), d uv / d params (N, 2, 5), d uv / d points (N, 2, 3))."""
+        """points_cam (N, 3) -> uv (N, 2), d uv / d params (N, 2, 5), d uv / d points (N, 2, 3)."""
         f, sx, cx, cy, k = np.asarray(params, dtype=np.float64)
         P = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
         z = P[:, 2]
@@ -122,7 +122,8 @@ class TsaiModel:
         uv = pd * S + np.array([cx, cy])
 
         # d(Xd, Yd) / d(Xu, Yu) = rho I + 2 rho_q pu pu^T
-        Jd = rho[:, None, None] * np.eye(2) + 2 * rho_q[:, None, None] * pu[:, :, None] * pu[:, None, :]
+        Jd = (rho[:, None, None] * np.eye(2)
+              + 2 * rho_q[:, None, None] * pu[:, :, None] * pu[:, None, :])
         Jp = np.zeros((len(P), 2, 5))
         Jp[:, :, 0] = np.einsum("nij,nj->ni", Jd, pu / f) * S   # d pu / d f = pu / f
         Jp[:, 0, 1] = pd[:, 0]
@@ -145,10 +146,15 @@ def radial_alignment_pose(board_xy: np.ndarray, sensor_d: np.ndarray):
 
     board_xy (N, 2): board points (z = 0), mm. sensor_d (N, 2): distorted sensor coordinates
     (Xd, Yd) relative to the principal point, px. R's third column is fixed up to the f > 0
-    choice, which :func:`focal_and_tz` makes; the returned R is the r3 >= 0 branch.
+    choice, which :func:`initial_estimate` makes; the returned R is the r3 >= 0 branch.
+
+    The RAC divides by Ty, so Tsai asks for a world origin far from the camera's x-z plane. The
+    solve therefore uses the board point imaged farthest from the image's horizontal centre line
+    as origin, and moves Tx, Ty back to the board's own origin at the end.
     """
-    xw, yw = board_xy[:, 0], board_xy[:, 1]
     Xd, Yd = sensor_d[:, 0], sensor_d[:, 1]
+    origin = board_xy[np.argmax(np.abs(Yd))]
+    xw, yw = (board_xy - origin).T
     # Eq. (10) coplanar: Yd xw r1' + Yd yw r2' + Yd Tx' - Xd xw r4' - Xd yw r5' = Xd.
     A = np.stack([Yd * xw, Yd * yw, Yd, -Xd * xw, -Xd * yw], 1)
     sol, _, rank, _ = np.linalg.lstsq(A, Xd, rcond=None)
@@ -175,34 +181,34 @@ def radial_alignment_pose(board_xy: np.ndarray, sensor_d: np.ndarray):
     r6 = np.copysign(np.sqrt(max(1.0 - r4 * r4 - r5 * r5, 0.0)), -(r1 * r4 + r2 * r5))
     row1, row2 = np.array([r1, r2, r3]), np.array([r4, r5, r6])
     R = np.stack([row1, row2, np.cross(row1, row2)])
+    tx, ty = np.array([tx, ty]) - R[:2, :2] @ origin
     return R, float(tx), float(ty)
+
+
+def _focal_terms(xy: np.ndarray, yd: np.ndarray, R: np.ndarray, ty: float):
+    """One view's share of eq. (15)'s least squares for f, its Tz eliminated in closed form.
+
+    Per point: y_i f - Yd_i Tz = w_i Yd_i with y_i = r4 xw + r5 yw + Ty and w_i = r7 xw + r8 yw.
+    For fixed f the best Tz fits Yd Tz to y f - w Yd; what is left is f P y = P (w Yd), P the
+    projection that removes Yd. Returns (num, den, y, w Yd) with this view's f = num / den.
+    """
+    y = xy @ R[1, :2] + ty
+    b = (xy @ R[2, :2]) * yd
+    out = lambda a: a - yd * (yd @ a) / (yd @ yd)
+    return out(y) @ out(b), out(y) @ out(y), y, b
 
 
 def focal_and_tz(board_xy: list[np.ndarray], Yd: list[np.ndarray], Rs: list[np.ndarray],
                  tys: list[float]):
-    """Stage 2: shared f and per-view Tz from eq. (15) with kappa1 = 0, one linear solve.
-
-    Per point: [y_i, -Yd_i] [f, Tz]^T = w_i Yd_i with y_i = r4 xw + r5 yw + Ty and
-    w_i = r7 xw + r8 yw. Returns (f, tz (V,)).
-    """
-    V = len(Rs)
-    rows, rhs = [], []
-    for v, (xy, yd, R, ty) in enumerate(zip(board_xy, Yd, Rs, tys)):
-        y = xy @ R[1, :2] + ty
-        w = xy @ R[2, :2]
-        block = np.zeros((len(xy), V + 1))
-        block[:, 0] = y
-        block[:, 1 + v] = -yd
-        rows.append(block)
-        rhs.append(w * yd)
-    A, b = np.concatenate(rows), np.concatenate(rhs)
-    scale = np.linalg.norm(A, axis=0)
-    sol, _, rank, _ = np.linalg.lstsq(A / scale, b, rcond=None)
-    if rank < V + 1:
-        raise ValueError("Tsai stage 2: f and Tz are not separable; at least one view must "
-                         "tilt the board against the image plane")
-    sol = sol / scale
-    return float(sol[0]), sol[1:]
+    """Stage 2: shared f and per-view Tz from eq. (15) with kappa1 = 0. Returns (f, tz (V,))."""
+    terms = [_focal_terms(*args) for args in zip(board_xy, Yd, Rs, tys)]
+    den = sum(t[1] for t in terms)
+    if not den > 1e-12 * sum(t[2] @ t[2] for t in terms):
+        raise ValueError("Tsai stage 2: f and Tz are not separable; the board must be tilted "
+                         "against the image plane in some view")
+    f = sum(t[0] for t in terms) / den
+    return float(f), np.array([yd @ (y * f - b) / (yd @ yd)
+                               for (_, _, y, b), yd in zip(terms, Yd)])
 
 
 def flip_for_positive_f(R: np.ndarray) -> np.ndarray:
@@ -214,6 +220,32 @@ def nearest_rotation(M: np.ndarray) -> np.ndarray:
     """Closest rotation (Frobenius) to M; removes the non-orthogonality noise leaves in stage 1."""
     U, _, Vt = np.linalg.svd(M)
     return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+
+
+def initial_estimate(obs: Observations, sx: float):
+    """Stages 1 and 2 over all views: (params0 [f, sx, cx, cy, 0], rvecs0 (V,3), tvecs0 (V,3))."""
+    w, h = obs.image_size
+    cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+    board = [o[:, :2] for o in obs.object_points]
+    sensor = [np.stack([(p[:, 0] - cx) / sx, p[:, 1] - cy], 1) for p in obs.image_points]
+    Rs, txs, tys = [], [], []
+    for vid, xy, d in zip(obs.view_ids, board, sensor):
+        try:
+            R, tx, ty = radial_alignment_pose(xy, d)
+        except ValueError as e:
+            raise ValueError(f"Tsai calibration of {obs.camera_name!r}, view {vid}: {e}") from None
+        # This view's f has the sign of its numerator; a board parallel to the image has f ~ 0
+        # from either branch, and there the branches nearly coincide anyway.
+        Rs.append(flip_for_positive_f(R) if _focal_terms(xy, d[:, 1], R, ty)[0] < 0 else R)
+        txs.append(tx)
+        tys.append(ty)
+    f, tz = focal_and_tz(board, [d[:, 1] for d in sensor], Rs, tys)
+    behind = [vid for vid, z in zip(obs.view_ids, tz) if z <= 0]
+    if f <= 0 or behind:
+        raise ValueError(f"Tsai calibration of {obs.camera_name!r}: stage 2 gave f = {f:.6g} px "
+                         f"and the board behind the camera in views {behind}")
+    rvecs = matrix_to_rodrigues(np.stack([nearest_rotation(R) for R in Rs]))
+    return np.array([f, sx, cx, cy, 0.0]), rvecs, np.stack([txs, tys, tz], 1)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -254,16 +286,15 @@ def tsai_to_opencv(params: np.ndarray, width: int, height: int, name: str = "cam
     r2a = np.concatenate([r2, r2])
     A = a[:, None] * np.stack([r2a, r2a**2, r2a**3], 1)
     b = a * (np.concatenate([rho, rho]) - 1.0)
-    scale = np.linalg.norm(A, axis=0)
-    kk = np.linalg.lstsq(A / np.where(scale > 0, scale, 1.0), b, rcond=None)[0] / np.where(
-        scale > 0, scale, 1.0)
+    scale = np.linalg.norm(A, axis=0)  # r2^3 is ~100x smaller than r2: equilibrate the columns
+    kk = np.linalg.lstsq(A / scale, b, rcond=None)[0] / scale
     res = (A @ kk - b).reshape(2, -1)
     err = np.hypot(res[0], res[1])
     K = k * f * f
     cam = Camera(name, width, height, sx * f, f, cx, cy, 0.0,
                  np.array([kk[0], kk[1], 0, 0, kk[2], 0, 0, 0]))
     return cam, ConversionReport(float(err.max()), float(np.sqrt(np.mean(err**2))),
-                                 (-K, 3 * K * K, -12 * K**3))
+                                 (float(-K), float(3 * K * K), float(-12 * K**3)))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -289,42 +320,31 @@ class TsaiCalibrator:
     def calibrate(self, obs: Observations) -> CalibrationResult:
         t0 = time.perf_counter()
         w, h = obs.image_size
-        cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
-        sx0 = 1.0 if self.sx is None else float(self.sx)
-        board = [o[:, :2] for o in obs.object_points]
-        sensor = [np.stack([(p[:, 0] - cx) / sx0, p[:, 1] - cy], 1) for p in obs.image_points]
-
-        Rs, txs, tys = [], [], []
-        for vid, xy, d in zip(obs.view_ids, board, sensor):
-            where = f"Tsai calibration of {obs.camera_name!r}, view {vid}"
-            try:
-                R, tx, ty = radial_alignment_pose(xy, d)
-                f_view, _ = focal_and_tz([xy], [d[:, 1]], [R], [ty])
-            except ValueError as e:
-                raise ValueError(f"{where}: {e}") from None
-            Rs.append(flip_for_positive_f(R) if f_view < 0 else R)
-            txs.append(tx)
-            tys.append(ty)
-        f0, tz0 = focal_and_tz(board, [d[:, 1] for d in sensor], Rs, tys)
-        behind = [vid for vid, tz in zip(obs.view_ids, tz0) if tz <= 0]
-        if f0 <= 0 or behind:
-            raise ValueError(f"Tsai calibration of {obs.camera_name!r}: stage 2 gave f = "
-                             f"{f0:.6g} px and the board behind the camera in views {behind}")
-
-        params0 = np.array([f0, sx0, cx, cy, 0.0])
         free = np.array([True, self.sx is None] + [self.free_principal_point] * 2 + [True])
-        rvecs0 = matrix_to_rodrigues(np.stack([nearest_rotation(R) for R in Rs]))
-        tvecs0 = np.stack([txs, tys, tz0], 1)
-        res = refine(TsaiModel(strict=False), params0, free, obs.object_points,
-                     obs.image_points, rvecs0, tvecs0, max_iter=self.max_iter)
+        model = TsaiModel(strict=False)
+        passes = []
+        sx0 = 1.0 if self.sx is None else float(self.sx)
+        # Pass 1 starts at sx = 1 (or the known sx). The RAC's rotations are only as good as that
+        # sx, and with a wrong one (e.g. 4/3 for non-square pixels) refine can end in a local
+        # minimum; pass 2 redoes the closed-form stages with pass 1's multi-view sx.
+        for _ in range(2 if self.sx is None else 1):
+            params0, rvecs0, tvecs0 = initial_estimate(obs, sx0)
+            res = refine(model, params0, free, obs.object_points, obs.image_points, rvecs0,
+                         tvecs0, max_iter=self.max_iter)
+            passes.append((res, params0))
+            if abs(res.params[1] - sx0) <= 1e-3 * sx0:  # the RAC already had sx to 0.1 %
+                break
+            sx0 = float(res.params[1])
+        res = min((r for r, _ in passes), key=lambda r: r.cost)
         camera, conv = tsai_to_opencv(res.params, w, h, obs.camera_name)
-        f, sx, _, _, kappa1 = res.params
+        f, kappa1 = res.params[[0, 4]]
         log = {
             "method": self.name,
             **res.log(),
             "tsai": dict(zip(PARAM_NAMES, map(float, res.params))),
             "kappa1_f2": float(kappa1 * f * f),
-            "initial": {"f": f0, "sx": sx0},
+            "passes": [{"f0": float(p0[0]), "sx0": float(p0[1]), "iterations": r.iterations,
+                        "final_cost": r.cost} for r, p0 in passes],
             "principal_point": "free" if self.free_principal_point else
                                "fixed at the image centre ((w - 1) / 2, (h - 1) / 2)",
             "opencv_conversion": {"max_px": conv.max_px, "rms_px": conv.rms_px,

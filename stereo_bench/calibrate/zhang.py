@@ -76,9 +76,7 @@ def intrinsics_from_homographies(Hs: list[np.ndarray], image_size, zero_skew: bo
 def extrinsics_from_homography(K: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """cam_from_board (rvec, tvec) from K and H (section 3.1, rotation by SVD as in Appendix C)."""
     A = np.linalg.solve(K, H)
-    A = A / np.linalg.norm(A[:, 0])
-    if A[2, 2] < 0:  # the board origin must be in front of the camera (z > 0)
-        A = -A
+    A = A / np.linalg.norm(A[:, 0])  # A[2, 2] = H[2, 2] > 0 keeps the board origin in front
     Q = np.column_stack([A[:, 0], A[:, 1], np.cross(A[:, 0], A[:, 1])])
     U, _, Vt = np.linalg.svd(Q)
     return matrix_to_rodrigues(U @ Vt), A[:, 2]

@@ -1,0 +1,111 @@
+"""Tables from metrics: mean ± std over trials, in the layout of the paper's Tables 2 and 3.
+
+A single number cannot tell 0.49 px from 0.51 px, so every figure is aggregated over the
+trials (re-renders with different seeds) it was measured on, and printed as mean ± std.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+# (column title, path into one calibration entry)
+CALIBRATION_COLUMNS = [
+    ("RPE_RMS px", ("rpe_rms_px",)),
+    ("paper RMSE", ("paper_rmse",)),
+    ("proj. diff mean px", ("projection_difference", "mean_px")),
+    ("proj. diff max px", ("projection_difference", "max_px")),
+    ("rot.-comp. diff mean px", ("projection_difference", "rotation_compensated_mean_px")),
+    ("fx err px", ("parameter_errors", "fx")),
+    ("fy err px", ("parameter_errors", "fy")),
+    ("cx err px", ("parameter_errors", "cx")),
+    ("cy err px", ("parameter_errors", "cy")),
+    ("k1 err", ("parameter_errors", "k1")),
+    ("board rot. err deg", ("board_pose", "rotation_deg_mean")),
+    ("board transl. err mm", ("board_pose", "translation_mm_mean")),
+    ("time s", ("wall_time_s",)),
+]
+DETECTION_COLUMNS = [
+    ("rate", ("detection_rate",)),
+    ("mean px", ("mean_px",)),
+    ("RMS px", ("rms_px",)),
+    ("max px", ("max_px",)),
+    ("signed mean x px", ("mean_dx_px",)),
+    ("signed mean y px", ("mean_dy_px",)),
+    ("flips", ("flips",)),
+]
+
+
+def _get(entry: dict, path: tuple) -> float:
+    for key in path:
+        if not isinstance(entry, dict) or key not in entry:
+            return math.nan
+        entry = entry[key]
+    return float(entry) if isinstance(entry, (int, float)) else math.nan
+
+
+def summarize(values: list[float]) -> dict:
+    """mean, std (ddof=1 when n > 1) and n over the finite values."""
+    v = np.array([x for x in values if np.isfinite(x)])
+    if len(v) == 0:
+        return {"mean": math.nan, "std": math.nan, "n": 0}
+    return {"mean": float(v.mean()), "std": float(v.std(ddof=1)) if len(v) > 1 else 0.0,
+            "n": int(len(v))}
+
+
+def aggregate(trials: list[dict]) -> dict:
+    """Mean ± std of every table figure over trials (each a metrics.json of evaluate_dataset).
+
+    Returns {"detection": {camera: {column: summary}}, "calibration": {method: {camera:
+    {column: summary, "failures": [messages]}}}}.
+    """
+    first = trials[0]
+    agg = {"trials": len(trials), "detection": {}, "calibration": {}}
+    for cam in first["cameras"]:
+        agg["detection"][cam] = {title: summarize([_get(t["detection"][cam], path)
+                                                   for t in trials])
+                                 for title, path in DETECTION_COLUMNS}
+    for m in first["methods"]:
+        agg["calibration"][m] = {}
+        for cam in first["cameras"]:
+            entries = [t["calibration"][m][cam] for t in trials]
+            row = {title: summarize([_get(e, path) for e in entries])
+                   for title, path in CALIBRATION_COLUMNS}
+            row["failures"] = [e["error"] for e in entries if "error" in e]
+            agg["calibration"][m][cam] = row
+    return agg
+
+
+def fmt(s: dict, digits: int = 3) -> str:
+    if s["n"] == 0:
+        return "failed"
+    if s["n"] == 1:
+        return f"{s['mean']:.{digits}g}"
+    return f"{s['mean']:.{digits}g} ± {s['std']:.2g}"
+
+
+def markdown(agg: dict, title: str) -> str:
+    """Detection table plus the calibration table (rows: camera x method)."""
+    lines = [f"# {title}", "", f"Mean ± std over {agg['trials']} trial(s).", "",
+             "## Detection against ground truth", "",
+             "| camera | " + " | ".join(t for t, _ in DETECTION_COLUMNS) + " |",
+             "|---|" + "---|" * len(DETECTION_COLUMNS)]
+    for cam, row in agg["detection"].items():
+        lines.append(f"| {cam} | " + " | ".join(fmt(row[t]) for t, _ in DETECTION_COLUMNS) + " |")
+    lines += ["", "## Calibration against ground truth (layout of the paper's Tables 2 and 3)", "",
+              "`paper RMSE` is the paper's RMSE over [fx, fy, cx, cy, k1..k6]: it mixes pixels with "
+              "unitless coefficients, so compare it only with the paper. `proj. diff` is how far "
+              "the estimate projects the true camera's rays over the whole image, the error a "
+              "user of the calibration sees.", "",
+              "| camera | method | " + " | ".join(t for t, _ in CALIBRATION_COLUMNS) + " |",
+              "|---|---|" + "---|" * len(CALIBRATION_COLUMNS)]
+    failures = []
+    for m, cams in agg["calibration"].items():
+        for cam, row in cams.items():
+            lines.append(f"| {cam} | {m} | "
+                         + " | ".join(fmt(row[t]) for t, _ in CALIBRATION_COLUMNS) + " |")
+            failures += [f"- {cam} / {m}: {msg}" for msg in row["failures"]]
+    if failures:
+        lines += ["", "## Failures", ""] + failures
+    return "\n".join(lines) + "\n"
