@@ -62,8 +62,11 @@ def test_mesh_is_closed_outward_capsules(data):
 def test_asset_is_what_the_build_script_makes(data):
     rebuilt = runpy.run_path(str(ROOT / "scripts" / "build_body_model.py"))["build"]()
     assert rebuilt.keys() == data.keys()
-    for key in rebuilt:
-        np.testing.assert_array_equal(rebuilt[key], data[key], err_msg=key)
+    for key in rebuilt:  # floats to rounding: numpy's sin/cos may differ in the last bit across CPUs
+        if rebuilt[key].dtype.kind == "f":
+            np.testing.assert_allclose(rebuilt[key], data[key], rtol=1e-6, atol=1e-7, err_msg=key)
+        else:
+            np.testing.assert_array_equal(rebuilt[key], data[key], err_msg=key)
 
 
 def test_elbow_rotation_moves_the_wrist_by_the_forearm(model, data):

@@ -107,17 +107,16 @@ class RefineResult:
 
 
 class _Problem:
-    """Board points of all views concatenated, with the bookkeeping to sum per view."""
+    """Board points of all views concatenated, with each view's (start, end) among them."""
 
     def __init__(self, model, free, object_points, image_points):
         self.model = model
         self.free = np.asarray(free, dtype=bool)
         self.points = np.concatenate(object_points)
         self.observed = np.concatenate(image_points)
-        counts = [len(p) for p in object_points]
+        counts = np.array([len(p) for p in object_points])
         self.view = np.repeat(np.arange(len(counts)), counts)
-        self.starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        self.bounds = list(zip(self.starts, np.cumsum(counts)))
+        self.bounds = list(zip(np.cumsum(counts) - counts, np.cumsum(counts)))
 
     def residuals(self, params, rvecs, tvecs, jacobians=False):
         R = rodrigues_to_matrix(rvecs)[self.view]
@@ -154,7 +153,7 @@ def _solve_damped(U, V, W, ga, gb, lam):
     Vd = V + lam * np.diagonal(V, axis1=1, axis2=2)[:, :, None] * eye6
     S, V_inv, WV = _schur(Ud, Vd, W)
     rhs = -ga + np.einsum("vij,vj->i", WV, gb)
-    da = np.linalg.solve(S, rhs) if len(rhs) else rhs
+    da = np.linalg.solve(S, rhs)
     db = -np.einsum("vij,vj->vi", V_inv, gb + np.einsum("vji,j->vi", W, da))
     return da, db
 
@@ -225,7 +224,7 @@ def refine(model: ProjectionModel, params0, free, object_points, image_points, r
             break
         iterations += 1
         U, V, W, ga, gb = problem.normal_equations(r, Ja, Jb)
-        while True:
+        while lam <= 1e16:  # raise the damping until a step decreases the cost (NaN does not)
             da, db = _solve_damped(U, V, W, ga, gb, lam)
             x_new = x.copy()
             x_new[problem.free] += da
@@ -235,9 +234,7 @@ def refine(model: ProjectionModel, params0, free, object_points, image_points, r
             if cost_new < cost:
                 break
             lam *= 10.0
-            if lam > 1e16:
-                break
-        if lam > 1e16:
+        else:
             reason = "no decrease (cost at its floor)"
             break
         # Marquardt's scaling sqrt(diag(J^T J)) makes the step test unit-free (MINPACK's xtol).

@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-from ..camera import matrix_to_rodrigues
+from ..camera import Camera, matrix_to_rodrigues
 from .base import CalibrationResult, Observations
 from .homography import fit_homography
 from .refine import OpenCVModel, free_mask, refine
@@ -84,11 +84,9 @@ def extrinsics_from_homography(K: np.ndarray, H: np.ndarray) -> tuple[np.ndarray
 
 def radial_from_linear(K, rvecs, tvecs, obs: Observations) -> np.ndarray:
     """k1, k2 from eq. 13: (u_obs - u) = (u - u0) [r^2 r^4] k on ideal (undistorted) projections."""
-    model = OpenCVModel()
-    params = np.concatenate([[K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]], np.zeros(8)])
     D, d = [], []
     for obj, img, rv, tv in zip(obs.object_points, obs.image_points, rvecs, tvecs):
-        cam = model.camera(params, obs.camera_name, obs.image_size).with_params(rvec=rv, tvec=tv)
+        cam = Camera.from_K(obs.camera_name, *obs.image_size, K, rvec=rv, tvec=tv)
         p = cam.world_to_cam(obj)
         r2 = np.sum((p[:, :2] / p[:, 2:]) ** 2, axis=1)
         uv = cam.project(obj)
@@ -112,17 +110,14 @@ class ZhangCalibrator:
         poses = [extrinsics_from_homography(K, H) for H in Hs]
         rvecs = np.array([p[0] for p in poses])
         tvecs = np.array([p[1] for p in poses])
-        k1, k2 = radial_from_linear(K, rvecs, tvecs, obs)
+        initial = Camera.from_K(obs.camera_name, *obs.image_size, K,
+                                radial_from_linear(K, rvecs, tvecs, obs))
 
         model = OpenCVModel()
-        params0 = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1], k1, k2, 0, 0, 0, 0, 0, 0])
         free = ["fx", "fy", "cx", "cy", "k1", "k2"] + ([] if self.zero_skew else ["skew"])
-        if self.zero_skew:
-            params0[4] = 0.0
-        res = refine(model, params0, free_mask(model.param_names, free), obs.object_points,
-                     obs.image_points, rvecs, tvecs, max_iter=self.max_iter)
-        log = {"method": self.name, "zero_skew": self.zero_skew,
-               "closed_form": {"K": K.tolist(), "k1": float(k1), "k2": float(k2)},
+        res = refine(model, model.params_of(initial), free_mask(model.param_names, free),
+                     obs.object_points, obs.image_points, rvecs, tvecs, max_iter=self.max_iter)
+        log = {"method": self.name, "zero_skew": self.zero_skew, "closed_form": initial.to_dict(),
                **res.log(), "time_s": time.perf_counter() - t0,
                "notes": "Zhang 2000: closed form (App. B), eq. 13 radial, ML refinement (eq. 14)"}
         return CalibrationResult(model.camera(res.params, obs.camera_name, obs.image_size),

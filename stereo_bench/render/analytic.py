@@ -36,7 +36,7 @@ from ..camera import Camera, distort_with_jacobians, radial_fold_radius
 
 _PAD = 2           # background texels around every texture (also absorbs perspectiveTransform's
                    # (0, 0) answer for rays parallel to the plane)
-_CELL = 16         # px, coarse grid used to find the board's image region and footprint
+_CELL = 32         # px, coarse grid used to find the board's image region and footprint
 _OUTLINE_POINTS = 1024  # samples per outline edge when locating the board's image region
 _OUTSIDE = -1.0e4  # texel coordinate far outside every texture
 _LEVELS_PER_OCTAVE = 4
@@ -110,7 +110,7 @@ class PixelRays:
     ``_CELL`` px, clamped to the image) and their exact rays, to locate the board per frame.
     """
 
-    def __init__(self, camera: Camera, chunk_points: int = 1 << 16):
+    def __init__(self, camera: Camera, chunk_points: int = 1 << 15):
         self.camera = camera
         W, H = camera.width, camera.height
         self.fold_radius = radial_fold_radius(camera.dist)
@@ -208,7 +208,7 @@ class AnalyticRenderer:
         """Render the board into ``canvas`` (H, W) uint16; returns the strips drawn."""
         corners = self._outline_mm() @ R[:, :2].T + t
         normal_dot = R[:, 2] @ t  # > 0: the printed front faces the camera
-        if corners[:, 2].max() <= 0 or abs(normal_dot) < 1e-9 * np.linalg.norm(t):
+        if corners[:, 2].max() <= 0 or abs(normal_dot) <= 1e-9 * np.linalg.norm(t):
             return []  # behind the camera, or seen exactly edge-on
         straddles = corners[:, 2].min() <= 0
         # board_from_normalized, scaled so the homogeneous w is z_ref / depth (order 1; see _PAD).
