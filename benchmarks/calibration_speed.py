@@ -58,7 +58,8 @@ def main() -> None:
     print(f"OpenCV {cv2.__version__}, numpy {np.__version__}; {obs.n_views} views x "
           f"{obs.n_points // obs.n_views} corners of camera {truth.name!r} "
           f"({truth.width}x{truth.height}), noise {args.sigma} px")
-    print(f"{'method':<28}{'time s':>9}{'RPE_RMS px':>12}{'proj. diff mean px':>20}")
+    print(f"{'method':<28}{'time s':>9}{'RPE_RMS px':>12}{'proj. diff mean px':>20}"
+          f"{'rot.-compensated':>18}")
 
     obj = [o.astype(np.float32) for o in obs.object_points]
     img = [p.astype(np.float32) for p in obs.image_points]
@@ -73,8 +74,9 @@ def main() -> None:
         except Exception as e:  # a method failing to import or run is reported, not fatal
             print(f"{name:<28}  failed: {type(e).__name__}: {e}")
             continue
-        diff = projection_difference(result.camera, truth)["mean_px"]
-        print(f"{name:<28}{t:>9.3f}{result.log['rms_px']:>12.4f}{diff:>20.4f}")
+        diff = projection_difference(result.camera, truth)
+        print(f"{name:<28}{t:>9.3f}{result.log['rms_px']:>12.4f}{diff['mean_px']:>20.4f}"
+              f"{diff['rotation_compensated_mean_px']:>18.4f}")
 
 
 if __name__ == "__main__":

@@ -10,7 +10,7 @@ camera's own calibration, ``board_rvecs, board_tvecs (C, F, 3)`` (NaN where not 
    with the least summed geodesic distance to the others) fixes a robust centre, frames farther
    than 3 robust standard deviations (1.4826 x the median distance, at least 0.1 deg) are dropped
    (e.g. a flipped PnP solution), and the chordal L2 mean of the rest is the SVD projection of
-   their summed matrices onto SO(3) (Hartley et al., "Rotation averaging", IJCV 2013, Sec. 5.3).
+   their summed matrices onto SO(3) (Hartley, Trumpf, Dai & Li, "Rotation averaging", IJCV 2013).
    The translation is the coordinate-wise median of ``t_b - R t_a`` over the kept frames, with the
    averaged R. Cameras are joined to camera 0 along a maximum spanning tree of the shared-frame
    counts (Prim), so a camera that shares no frame with camera 0 is chained through others.
@@ -49,8 +49,9 @@ class RigCalibration:
     frames_used: (F,) bool, the frames seen by two or more cameras.
     rms_px: RMS reprojection error (px per point) over all observations; rms_px_per_camera (C,).
     iterations: Jacobian evaluations of the solver; time_s: wall time of the whole calibration.
-    log: initial_rms_px, nfev, status and message of the solver, n_observations, and per camera
-    the initialization's parent camera and shared / kept frame counts.
+    log: initial_rms_px, nfev, status and message of the solver, n_observations, and
+    "initialization": per camera its name, the camera it was chained from ("parent"), the frames
+    they share and the frames kept by the rotation average.
     """
 
     cameras: list[Camera]
@@ -103,8 +104,8 @@ def initial_rig(board_R: np.ndarray, board_t: np.ndarray, seen: np.ndarray,
     C = len(seen)
     shared = (seen[:, None, :] & seen[None, :, :]).sum(axis=-1)
     R, t = np.tile(np.eye(3), (C, 1, 1)), np.zeros((C, 3))
-    log = [{"parent": None, "shared_frames": int(seen[0].sum()), "kept_frames": None}]
-    log += [None] * (C - 1)
+    log = [{"camera": names[0], "parent": None, "shared_frames": int(seen[0].sum()),
+            "kept_frames": None}] + [None] * (C - 1)
     joined = [0]
     while len(joined) < C:
         free = [j for j in range(C) if j not in joined]
@@ -118,7 +119,7 @@ def initial_rig(board_R: np.ndarray, board_t: np.ndarray, seen: np.ndarray,
         Rji, tji, inl = relative_pose(board_R[i, both], board_t[i, both],
                                       board_R[j, both], board_t[j, both])
         R[j], t[j] = compose(Rji, tji, R[i], t[i])
-        log[j] = {"parent": names[i], "shared_frames": int(both.sum()),
+        log[j] = {"camera": names[j], "parent": names[i], "shared_frames": int(both.sum()),
                   "kept_frames": int(inl.sum())}
         joined.append(j)
     return R, t, log
@@ -262,7 +263,7 @@ def calibrate_rig(
         time_s=time.perf_counter() - t0,
         log={"initial_rms_px": rms0, "nfev": int(sol.nfev), "status": int(sol.status),
              "message": sol.message, "n_observations": int(valid.sum()),
-             "initialization": dict(zip(names, init_log))})
+             "initialization": init_log})
 
 
 # ----------------------------------------------------------------------------------------------

@@ -204,13 +204,14 @@ def refine_points(
             J = jac["point"]
             Jr = np.einsum("kij,ki->kj", J, r)
             # Hessian of rho(|r|^2) (Gauss-Newton in r): J^T (rho' I + 2 rho'' r r^T) J, with
-            # the curvature along r clipped at 0 as in scipy (Triggs et al. 2000, Sec. 4.3):
-            # IRLS alone (rho' only) converges only linearly on Huber's flat valleys.
-            c = np.maximum(2 * d2, -d1 / np.maximum(e2, 1e-300))
+            # the curvature along r clipped at 0 as scipy does (Triggs et al., "Bundle
+            # adjustment - a modern synthesis", 2000, robustified least squares): IRLS alone
+            # (rho' only) converges only linearly in Huber's flat valleys.
+            curv = np.maximum(2 * d2, -d1 / np.maximum(e2, 1e-300))
             cost += wc**2 * rho
             g += (wc**2 * d1)[:, None] * Jr
             H += ((wc**2 * d1)[:, None, None] * np.einsum("kij,kil->kjl", J, J)
-                  + (wc**2 * c)[:, None, None] * Jr[:, :, None] * Jr[:, None, :])
+                  + (wc**2 * curv)[:, None, None] * Jr[:, :, None] * Jr[:, None, :])
         return cost, g, H
 
     idx = np.flatnonzero(usable)
@@ -278,8 +279,8 @@ def triangulate_robust(
         for v in range(len(cameras)):
             wv = w[:, idx].copy()
             wv[v] = 0
-            Xv = _dlt(cameras, xy[:, idx], wv)
-            trials[v] = np.where(w[v, idx] > 0, max_error(Xv, wv, idx), np.inf)
+            err = max_error(_dlt(cameras, xy[:, idx], wv), wv, idx)
+            trials[v] = np.where((w[v, idx] > 0) & ~np.isnan(err), err, np.inf)  # NaN: degenerate
         w[np.argmin(trials, axis=0), idx] = 0
         X[idx] = _dlt(cameras, xy[:, idx], w[:, idx])
         idx = idx[np.count_nonzero(w[:, idx] > 0, axis=0) >= 3]

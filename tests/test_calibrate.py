@@ -221,9 +221,9 @@ def chi_band(trials, p=1e-3):
 @pytest.mark.parametrize("sigma", [0.1, 1.0])
 def test_cramer_rao_bound_is_reached(sigma):
     """50 trials. A std estimated from 50 samples scatters by ~10 %, so the 20 % of the slow test
-    would be a 2-sigma band here (it failed one of five seeds tried); the band is the 99.9 % one of
-    the chi^2 distribution instead, [0.68, 1.34]. The reported param_std (residual variance x
-    inverse information at the estimate) has no such scatter and must match within 5 %."""
+    would be a 2-sigma band here (3 of 10 seeds tried failed it, all passed the band used); the
+    band is the 99.9 % one of the chi^2 distribution instead, [0.68, 1.34]. The reported param_std
+    (residual variance x inverse information at the estimate) has no such scatter: within 5 %."""
     ratio, reported = crb_ratios(sigma, trials=50, seed=int(10 * sigma))
     lo, hi = chi_band(50)
     assert np.all((lo < ratio) & (ratio < hi))

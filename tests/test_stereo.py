@@ -23,7 +23,8 @@ FRAMES = 40
 
 def placed(cam, position, name):
     R = look_at_rotation(np.array(position, float), np.array([0.0, 0, 600]), np.array([0, -1.0, 0]))
-    return cam.with_params(name=name, rvec=matrix_to_rodrigues(R), tvec=-R @ np.array(position, float))
+    return cam.with_params(name=name, rvec=matrix_to_rodrigues(R),
+                           tvec=-R @ np.array(position, float))
 
 
 def pair(left, right):
@@ -51,7 +52,8 @@ def observe(cameras, noise_px, seed=0, frames=FRAMES):
     # Each camera's own (imperfect) cam_from_board: truth perturbed by ~0.5 deg and ~2 mm.
     R_cb = np.stack([cam.R @ R_wb for cam in cameras])
     t_cb = np.stack([t_wb @ cam.R.T + cam.tvec for cam in cameras])
-    rv = matrix_to_rodrigues(rodrigues_to_matrix(rng.normal(0, 0.005, R_cb.shape[:2] + (3,))) @ R_cb)
+    turn = rodrigues_to_matrix(rng.normal(0, 0.005, R_cb.shape[:2] + (3,)))
+    rv = matrix_to_rodrigues(turn @ R_cb)
     return obj, img, rv, t_cb + rng.normal(0, 2.0, t_cb.shape)
 
 
@@ -125,7 +127,9 @@ def test_camera_without_a_frame_shared_with_camera_0_is_chained_through_another(
     found[0, FRAMES // 2:] = False  # camera 0 sees the first half, "top" only the second
     found[2, :FRAMES // 2] = False
     res = calibrate_rig(cams, obj, img, rv, tv, found=found)
-    assert res.log["initialization"]["top"]["parent"] == "right"
+    half = FRAMES // 2
+    assert res.log["initialization"][2] == {"camera": "top", "parent": "right",
+                                            "shared_frames": half, "kept_frames": half}
     assert rig_errors(res.cameras, cams)["translation_mm"].max() < 1e-6
     assert res.frames_used.all()  # every frame is seen by two cameras
 

@@ -83,7 +83,8 @@ def test_refined_is_no_worse_than_linear_and_is_the_least_squares_optimum():
     assert np.sqrt(cost["ref"].mean() / 4) < np.sqrt(cost["mid"].mean() / 4)  # RMS, not only <=
     # scipy, started at the truth, finds the same optimum.
     for j in range(5):
-        fun = lambda p: np.concatenate([c.project(p) - uv[i, 0, j] for i, c in enumerate(CAMS)])  # noqa: E731,B023
+        def fun(p, j=j):
+            return np.concatenate([c.project(p) - uv[i, 0, j] for i, c in enumerate(CAMS)])
         sol = least_squares(fun, X[0, j], xtol=1e-15, ftol=1e-15, gtol=1e-15)
         assert np.abs(sol.x - ref[0, j]).max() < 1e-6
 
@@ -94,9 +95,8 @@ def test_robust_losses_reach_the_optimum_of_their_cost(loss):
     uv[1] += [40.0, -30.0]  # a gross outlier in one view of every point
     ref = triangulate(CAMS, uv, loss=loss, loss_scale_px=2.0)
     for j in range(5):
-        # The loss applies to each view's pixel error |r_c|: one residual per view.
-        fun = lambda p: np.linalg.norm(  # noqa: E731
-            np.stack([c.project(p) for c in CAMS]) - uv[:, j], axis=-1)  # noqa: B023
+        def fun(p, j=j):  # the loss applies to each view's pixel error |r_c|: one residual each
+            return np.linalg.norm(np.stack([c.project(p) for c in CAMS]) - uv[:, j], axis=-1)
         sol = least_squares(fun, ref[j], loss=loss, f_scale=2.0, xtol=1e-15, ftol=1e-15,
                             gtol=1e-15)
         assert np.abs(sol.x - ref[j]).max() < 1e-5

@@ -13,10 +13,10 @@ factor): each pixel is the mean of ``s x s`` samples at offsets ``(k + 0.5) / s 
 (k = 0..s-1) in u and v, and each sample reads a texture rasterised (exact area coverage, by the
 pattern) at texels no finer than the footprint of one sample on the board, so a bilinear read
 does not alias. All filters are point-symmetric about the pixel centre, so edges and corners are
-not shifted. The sample positions come from the exact per-pixel map by bilinear interpolation of
-the per-frame texel coordinates (a smooth map: error ~1e-5 px, see tests/test_render.py); storing
-exact rays for every sample instead would cost s^2 times the memory (1.6 GB at s = 4 on a
-4096 x 3072 camera).
+not shifted. The sample positions come from the exact per-pixel rays by bilinear interpolation
+of the per-frame texel coordinates, a smooth map (error < 1e-3 px, tests/test_render.py); exact
+rays for every sample would cost s^2 times the memory and precomputation (1.6 GB and ~5 min at
+s = 4 on a 4096 x 3072 camera).
 
 Conventions: millimetres, OpenCV pixel centres (top-left pixel centre = (0, 0)),
 ``p_cam = R @ p_board + t`` for ``cam_from_board = (R, t)``.
@@ -40,6 +40,7 @@ _CELL = 32         # px, coarse grid used to find the board's image region and f
 _OUTLINE_POINTS = 1024  # samples per outline edge when locating the board's image region
 _OUTSIDE = -1.0e4  # texel coordinate far outside every texture
 _LEVELS_PER_OCTAVE = 4
+_LEVELS_KEPT = 4   # texture levels cached per renderer (<= 4 x 32 MiB at the default cap)
 
 
 @dataclass(frozen=True)
@@ -63,7 +64,7 @@ class RenderSettings:
     blur_sigma_px: optional Gaussian blur (optics) in pixels, applied before the noise; 0 = none.
     """
 
-    supersampling: int = 4
+    supersampling: int = 2
     texel_per_sample: float = 1.0
     max_texture_texels: int = 1 << 24
     background: float = 110.0
@@ -310,7 +311,7 @@ class AnalyticRenderer:
         k = math.floor(_LEVELS_PER_OCTAVE * math.log2(min(1.0 / texel, cap)))
         if k not in self._levels:
             self._levels[k] = self._rasterize(2.0 ** (k / _LEVELS_PER_OCTAVE))
-            while len(self._levels) > 2:  # keep memory bounded; trajectories move smoothly
+            while len(self._levels) > _LEVELS_KEPT:  # bounded memory; trajectories are smooth
                 self._levels.popitem(last=False)
         self._levels.move_to_end(k)
         level = self._levels[k]

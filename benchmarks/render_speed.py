@@ -1,0 +1,76 @@
+"""Time the analytic renderer per frame on the paper's two cameras, on one core.
+
+The frames are the paper's: the 9 x 12 checkerboard on the conical-spring trajectory of
+configs/paper/rectilinear_mono.yaml (4096 x 3072) and wide_mono.yaml (640 x 480), rendered in
+trajectory order from the near end (board filling the view) to the far end, so the per-frame
+mean includes the texture rasterisations a real run pays. Everything runs single-threaded
+(OMP/OPENBLAS/MKL_NUM_THREADS=1 before numpy loads, cv2.setNumThreads(1)). CPU time is what
+the core spent (robust to other load on the machine), wall time is printed beside it. The
+per-camera precomputation (PixelRays) is timed separately. OpenCV's speed depends on its build
+(TRAPS.md), so its version is printed.
+
+    python benchmarks/render_speed.py [--stride 2] [--supersampling 2 4]
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_var] = "1"  # before numpy is imported
+
+import argparse  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+from stereo_bench.config import load_rig  # noqa: E402
+from stereo_bench.render import AnalyticRenderer, PixelRays, RenderSettings  # noqa: E402
+from stereo_bench.rig import Rig  # noqa: E402
+
+PAPER = Path(__file__).resolve().parent.parent / "configs" / "paper"
+RIGS = {"rectilinear": ("rectilinear_mono.yaml", 0.3), "wide": ("wide_mono.yaml", 0.010)}
+
+
+def timed(fn):
+    cpu, wall = time.process_time(), time.perf_counter()
+    out = fn()
+    return out, time.process_time() - cpu, time.perf_counter() - wall
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--stride", type=int, default=2, help="render every STRIDE-th frame")
+    ap.add_argument("--supersampling", type=int, nargs="+", default=[2, 4])
+    args = ap.parse_args()
+    cv2.setNumThreads(1)
+    print(f"OpenCV {cv2.__version__}, numpy {np.__version__}; one core: cv2.setNumThreads(1), "
+          f"OMP/OPENBLAS/MKL_NUM_THREADS=1")
+    for name, (config, aim) in RIGS.items():
+        rig = Rig.from_config(load_rig(PAPER / config))
+        cam = rig.cameras[0]
+        R, t = rig.cam_from_board(cam)
+        frames = range(0, len(R), args.stride)
+        rays, cpu, wall = timed(lambda: PixelRays(cam))
+        print(f"\n{name} {cam.width}x{cam.height}: precompute PixelRays {cpu:.2f} s CPU "
+              f"({wall:.2f} s wall), {rays.xy.nbytes / 2**20:.0f} MiB; "
+              f"{len(frames)} frames of {rig.pattern.kind}, aim < {aim * 1e3:.0f} ms/frame")
+        print(f"  {'s':>2} {'environment':<11} {'CPU ms/frame mean [min..max]':>30} "
+              f"{'wall ms/frame':>14}")
+        for s in args.supersampling:
+            for env in ("clean", "noisy"):
+                renderer = AnalyticRenderer(cam, rig.pattern,
+                                            RenderSettings(supersampling=s, environment=env), rays)
+                rng = np.random.default_rng(0)
+                times = np.array([timed(lambda: renderer.render(R[f], t[f], rng))[1:]
+                                  for f in frames])
+                cpu_ms, wall_ms = 1e3 * times[:, 0], 1e3 * times[:, 1]
+                verdict = "" if cpu_ms.mean() < aim * 1e3 else "  (above the aim)"
+                print(f"  {s:>2} {env:<11} {cpu_ms.mean():>12.1f} [{cpu_ms.min():6.1f}.."
+                      f"{cpu_ms.max():6.1f}] {wall_ms.mean():>14.1f}{verdict}")
+
+
+if __name__ == "__main__":
+    main()
