@@ -17,7 +17,7 @@ $(BIN)/stereo-bench: pyproject.toml
 venv: $(BIN)/stereo-bench
 
 demo: venv
-	$(BIN)/stereo-bench render configs/quickstart.yaml --out out/quickstart
+	$(BIN)/stereo-bench configs/quickstart.yaml --out out/quickstart
 
 test: venv
 	$(BIN)/python -m pytest -q

@@ -46,49 +46,62 @@ def _methods(text: str) -> list[str]:
     return methods
 
 
-def cmd_calibrate(args) -> int:
+def _report(trials: list[dict], out: Path, title: str) -> dict:
     import json
 
-    from .dataset import Dataset, write_dataset
-    from .evaluate import evaluate_dataset
     from .report import aggregate, markdown
 
+    agg = aggregate(trials)
+    (out / "results.json").write_text(json.dumps({"aggregate": agg, "trials": trials}, indent=2))
+    md = markdown(agg, title)
+    (out / "report.md").write_text(md)
+    console.print(md, markup=False, soft_wrap=True, highlight=False)
+    return agg
+
+
+def _run(cfg, out: Path, args, first_dataset=None, with_rig=True) -> list[dict]:
+    from .pipeline import run
+
     methods = _methods(args.methods)
-    if args.trials < 1:
-        raise ValueError(f"--trials: expected at least 1, got {args.trials}")
+    if args.trials < 1 or args.workers < 1:
+        raise ValueError("--trials and --workers: expected at least 1")
+    with progress_bar() as bar:
+        task = bar.add_task(f"{cfg.name}: trials", total=args.trials)
+        return run(cfg, out, methods, args.trials, args.workers,
+                   lambda d, n: bar.update(task, completed=d, total=n),
+                   first_dataset=first_dataset, with_rig=with_rig)
+
+
+def cmd_calibrate(args) -> int:
+    from .dataset import Dataset
+
     base = Dataset.load(args.dataset)
     out = Path(args.out or Path(args.dataset) / "calibration")
-    trials = []
-    with progress_bar() as bar:
-        for i in range(args.trials):
-            seed = base.config.seed + i
-            tdir = out / "trials" / f"seed_{seed}"
-            cached = tdir / "metrics.json"
-            if cached.is_file() and json.loads(cached.read_text()).get("methods") == methods:
-                trials.append(json.loads(cached.read_text()))
-                continue
-            if i == 0:
-                ds = base
-            else:
-                ddir = tdir / "dataset"
-                try:
-                    ds = Dataset.load(ddir)
-                except FileNotFoundError:
-                    task = bar.add_task(f"render seed {seed}", total=None)
-                    cfg = base.config.model_copy(update={"seed": seed})
-                    ds = write_dataset(cfg, ddir, lambda d, n: bar.update(task, completed=d,
-                                                                         total=n))
-            task = bar.add_task(f"detect seed {seed}", total=None)
-            trials.append(evaluate_dataset(
-                ds, methods, tdir, lambda d, n: bar.update(task, completed=d, total=n)))
-    agg = aggregate(trials)
-    (out / "metrics.json").write_text(json.dumps({"aggregate": agg, "trials": trials}, indent=2))
-    md = markdown(agg, f"{base.config.name}: {base.config.pattern.kind}, "
-                       f"{base.config.environment.kind}")
-    (out / "metrics.md").write_text(md)
-    console.print(md, markup=False, soft_wrap=True, highlight=False)
-    console.print(f"wrote {out}/metrics.json, metrics.md and calibrations per trial")
+    trials = _run(base.config, out, args, first_dataset=base.root, with_rig=False)
+    _report(trials, out, f"{base.config.name}: {base.config.pattern.kind}, "
+                         f"{base.config.environment.kind}")
+    console.print(f"wrote {out}/results.json, report.md; estimates in {out}/trials/*/calibrations")
     return 0
+
+
+def cmd_run(args) -> int:
+    from .plots import plot_run
+
+    cfg = load_rig(args.rig)
+    out = Path(args.out or Path("out") / cfg.name)
+    trials = _run(cfg, out, args)
+    agg = _report(trials, out, f"{cfg.name}: {cfg.pattern.kind}, {cfg.environment.kind}")
+    plots = plot_run(out, trials, agg)
+    console.print(f"wrote {out}/results.json, {out}/report.md and {len(plots)} plots in "
+                  f"{out}/plots")
+    return 0
+
+
+def _trial_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--trials", type=int, default=1,
+                   help="re-render with N seeds (seed, seed+1, ...) and report mean ± std")
+    p.add_argument("--workers", type=int, default=1,
+                   help="trials run in parallel processes (default: %(default)s)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -113,14 +126,30 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--methods", default="zhang,tsai,bouguet,opencv",
                    help="comma-separated methods (default: %(default)s; also opencv-rational)")
     c.add_argument("--out", help="output directory (default: DATASET/calibration)")
-    c.add_argument("--trials", type=int, default=1,
-                   help="re-render with N seeds (seed, seed+1, ...) and report mean ± std")
+    _trial_options(c)
     c.set_defaults(func=cmd_calibrate)
+
+    u = sub.add_parser("run", help="the whole benchmark of one rig (also: stereo-bench RIG.yaml)",
+                       description="Render -> detect -> calibrate every camera with every "
+                                   "method -> calibrate the rig -> triangulate -> metrics -> "
+                                   "results.json, report.md and plots. Stages whose outputs "
+                                   "are complete are reused.")
+    u.add_argument("rig", help="rig YAML file (see configs/)")
+    u.add_argument("--out", help="run directory (default: out/<rig name>)")
+    u.add_argument("--methods", default="zhang,tsai,bouguet,opencv",
+                   help="comma-separated methods (default: %(default)s; also opencv-rational)")
+    _trial_options(u)
+    u.set_defaults(func=cmd_run)
     return p
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    # `stereo-bench RIG.yaml ...` is short for `stereo-bench run RIG.yaml ...`.
+    if argv and argv[0].endswith((".yaml", ".yml")):
+        argv.insert(0, "run")
+    args = parser.parse_args(argv)
     try:
         return args.func(args)
     except (ConfigError, FileNotFoundError, ValueError) as e:

@@ -5,6 +5,7 @@ Layout (documented in docs/dataset_format.md)::
     DIR/manifest.json               schema version, resolved config, seed, camera and file lists
     DIR/config.yaml                 the resolved rig configuration (re-render with it)
     DIR/pattern.png                 the board texture
+    DIR/timing.json                 how long the render took (the only file that varies)
     DIR/ground_truth/*.npy          K (C,3,3), dist (C,8), cam_from_world_{rvec,tvec} (C,3),
                                     world_from_board_{rvec,tvec} (F,3), object_points (N,3),
                                     ids (N,), image_points (C,F,N,2), visible (C,F,N)
@@ -16,6 +17,7 @@ The manifest is written last, so a directory with a manifest is complete.
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -68,6 +70,7 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None) -> "Dataset":
 
     total = len(rig.cameras) * len(rig.trajectory)
     done = 0
+    t0 = time.perf_counter()
     for c, cam in enumerate(rig.cameras):
         renderer = AnalyticRenderer(cam, rig.pattern, settings)
         R, t = rig.cam_from_board(cam)
@@ -98,6 +101,8 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None) -> "Dataset":
     resolved = cfg.model_dump(mode="json")
     (out / "config.yaml").write_text(yaml.safe_dump(resolved, sort_keys=False))
     (gt_dir / "cameras.json").write_text(json.dumps([c.to_dict() for c in cams], indent=2))
+    # Timing lives outside the manifest so that the same config and seed give identical files.
+    (out / "timing.json").write_text(json.dumps({"render_s": time.perf_counter() - t0}))
     manifest.write_text(json.dumps({
         "schema_version": SCHEMA_VERSION,
         "name": cfg.name,
@@ -132,6 +137,11 @@ class Dataset:
     @property
     def pattern(self):
         return pattern_from_config(self.config.pattern.kind, **self.config.pattern.overrides())
+
+    @property
+    def render_time_s(self) -> float:
+        path = self.root / "timing.json"
+        return json.loads(path.read_text())["render_s"] if path.is_file() else float("nan")
 
     @property
     def frames(self) -> int:

@@ -29,12 +29,14 @@ point 1) is the one closest to the image's +x axis, i.e. point 0 is the grid cor
 image's top-left.  The order is right for views rolled less than 90 degrees from upright (45 for
 the square 10 x 10 grid) and turned beyond; ``detection_errors`` counts such flips against the truth.
 
-Large images.  The search runs on a copy whose longest side is at most ``SEARCH_MAX_SIDE`` px
-(findChessboardCornersSB takes > 20 s on 4096 x 3072) and every point is then measured on the full
-image: cornerSubPix for checkerboard corners (SB included); for ChArUco the markers found on the
-small copy, scaled up, go to CharucoDetector, which interpolates the corners on the full image
-before the saddle fit; circle centres are always re-measured at full resolution (a centroid needs
-only a window, which the scaled-up estimate places to well under a pixel).
+Search and measurement.  The search runs on a copy whose longest side is at most
+``SEARCH_MAX_SIDE`` px (findChessboardCornersSB takes > 20 s on 4096 x 3072; ChArUco's markers of a
+small image are searched on a copy enlarged to ``CHARUCO_MIN_SEARCH_SIDE``), and every point is
+then measured on the full image: cornerSubPix for checkerboard corners (SB's included when the copy
+was shrunk); for ChArUco the markers found on the copy, scaled back, go to CharucoDetector, which
+interpolates the corners on the full image before the saddle fit; circle centres are always
+re-measured at full resolution (a centroid needs only a window, which the scaled-back estimate
+places to well under a pixel).
 """
 
 from __future__ import annotations

@@ -56,6 +56,15 @@ def _grid(camera: Camera, n: tuple[int, int]) -> np.ndarray:
     return np.stack(np.meshgrid(u, v), -1).reshape(-1, 2)
 
 
+def projection_difference_map(estimate: Camera, truth: Camera,
+                              grid: tuple[int, int] = (160, 120)) -> np.ndarray:
+    """(rows, columns) px: per grid pixel, how far the estimate projects the true camera's ray
+    (intrinsics only, no rotation compensation); the map behind ``projection_difference``."""
+    uv = _grid(truth, grid)
+    diff = estimate.normalized_to_pixels(truth.unproject(uv)) - uv
+    return np.linalg.norm(diff, axis=1).reshape(grid[1], grid[0])
+
+
 def projection_difference(estimate: Camera, truth: Camera, grid: tuple[int, int] = (64, 48),
                           rotation=None) -> dict:
     """Mean and max pixel distance between the two cameras' projections of the same rays.

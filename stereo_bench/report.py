@@ -26,6 +26,15 @@ CALIBRATION_COLUMNS = [
     ("board transl. err mm", ("board_pose", "translation_mm_mean")),
     ("time s", ("wall_time_s",)),
 ]
+RIG_COLUMNS = [
+    ("RMSE_cal mm", ("rmse_cal_mm",)),
+    ("centre RMSE mm", ("centre_rmse_mm",)),
+    ("max error mm", ("max_error_mm",)),
+    ("rel. rotation err deg", ("rig_errors", "rotation_deg")),
+    ("rel. translation err mm", ("rig_errors", "translation_mm")),
+    ("baseline err mm", ("rig_errors", "baseline_mm")),
+    ("stereo RMS px", ("rms_px",)),
+]
 DETECTION_COLUMNS = [
     ("rate", ("detection_rate",)),
     ("mean px", ("mean_px",)),
@@ -38,10 +47,14 @@ DETECTION_COLUMNS = [
 
 
 def _get(entry: dict, path: tuple) -> float:
+    """The number at ``path``; for a per-camera list (rig errors of cameras 1..C-1), the one of
+    largest magnitude, i.e. the worst camera."""
     for key in path:
         if not isinstance(entry, dict) or key not in entry:
             return math.nan
         entry = entry[key]
+    if isinstance(entry, list) and entry:
+        entry = max(entry, key=abs)
     return float(entry) if isinstance(entry, (int, float)) else math.nan
 
 
@@ -74,6 +87,15 @@ def aggregate(trials: list[dict]) -> dict:
                    for title, path in CALIBRATION_COLUMNS}
             row["failures"] = [e["error"] for e in entries if "error" in e]
             agg["calibration"][m][cam] = row
+    if first.get("rig"):
+        agg["rig"] = {}
+        for m in first["methods"]:
+            entries = [t["rig"][m] for t in trials]
+            row = {title: summarize([_get(e, path) for e in entries]) for title, path in RIG_COLUMNS}
+            row["failures"] = [e["error"] for e in entries if "error" in e]
+            agg["rig"][m] = row
+    agg["timing"] = {k: summarize([t.get("timing", {}).get(k, math.nan) for t in trials])
+                     for k in ("render_s", "detect_s", "calibrate_s", "rig_s")}
     return agg
 
 
@@ -106,6 +128,20 @@ def markdown(agg: dict, title: str) -> str:
             lines.append(f"| {cam} | {m} | "
                          + " | ".join(fmt(row[t]) for t, _ in CALIBRATION_COLUMNS) + " |")
             failures += [f"- {cam} / {m}: {msg}" for msg in row["failures"]]
+    if "rig" in agg:
+        lines += ["", "## Rig calibration and triangulation (layout of the paper's Table 4)", "",
+                  "RMSE_cal: the board's feature points triangulated through each method's "
+                  "calibrated rig against their true positions in the reference camera's frame. "
+                  "Rig errors are of the worst non-reference camera.", "",
+                  "| method | " + " | ".join(t for t, _ in RIG_COLUMNS) + " |",
+                  "|---|" + "---|" * len(RIG_COLUMNS)]
+        for m, row in agg["rig"].items():
+            lines.append(f"| {m} | " + " | ".join(fmt(row[t]) for t, _ in RIG_COLUMNS) + " |")
+            failures += [f"- rig / {m}: {msg}" for msg in row["failures"]]
     if failures:
         lines += ["", "## Failures", ""] + failures
+    timing = agg.get("timing", {})
+    if timing:
+        lines += ["", "Stage times (s per trial): " + ", ".join(
+            f"{k[:-2]} {fmt(v)}" for k, v in timing.items() if v["n"])]
     return "\n".join(lines) + "\n"

@@ -101,7 +101,8 @@ def test_refine_jacobians_match_finite_differences():
         d[0, j] = h
         rv_p, tv_p = rvecs + d[:, :3], tvecs + d[:, 3:]
         rv_m, tv_m = rvecs - d[:, :3], tvecs - d[:, 3:]
-        fd = (problem.residuals(params, rv_p, tv_p) - problem.residuals(params, rv_m, tv_m)) / (2 * h)
+        fd = (problem.residuals(params, rv_p, tv_p)
+              - problem.residuals(params, rv_m, tv_m)) / (2 * h)
         assert np.abs(fd[view0] - J_pose[view0, :, j]).max() < 1e-5 * np.abs(fd).max(), j
         assert np.all(fd[~view0] == 0)
 

@@ -42,7 +42,7 @@ KC_NAMES = ("k1", "k2", "p1", "p2", "k3")
 
 
 def init_focal(Hs: list[np.ndarray], cc: np.ndarray, two_focals: bool = False) -> np.ndarray:
-    """(fx, fy) from the vanishing points of each board's axes and diagonals (init_intrinsic_param)."""
+    """(fx, fy) from vanishing points of the boards' axes and diagonals (init_intrinsic_param)."""
     sub_cc = np.array([[1.0, 0.0, -cc[0]], [0.0, 1.0, -cc[1]], [0.0, 0.0, 1.0]])
     A, b = [], []
     for H in Hs:
@@ -62,8 +62,10 @@ def init_focal(Hs: list[np.ndarray], cc: np.ndarray, two_focals: bool = False) -
 
 
 def extrinsic_init(camera, board_xy: np.ndarray, image_xy: np.ndarray):
-    """cam_from_board (rvec, tvec) from the normalized-coordinate homography (compute_extrinsic_init)."""
-    normalized = undistort_normalized(camera.pixels_to_distorted_normalized(image_xy), camera.dist)[0]
+    """cam_from_board (rvec, tvec) from the homography to normalized coordinates
+    (compute_extrinsic_init)."""
+    distorted = camera.pixels_to_distorted_normalized(image_xy)
+    normalized = undistort_normalized(distorted, camera.dist)[0]
     H = fit_homography(board_xy, normalized)
     H = H / np.mean(np.linalg.norm(H[:, :2], axis=0))  # H[2, 2] > 0 keeps the board in front
     u1 = H[:, 0] / np.linalg.norm(H[:, 0])
@@ -93,7 +95,7 @@ class BouguetCalibrator:
         self.free = free_mask(self.model.param_names, free)
 
     def _extrinsics(self, params, obs: Observations):
-        """Every view's pose afresh from the intrinsics (compute_extrinsic_init + compute_extrinsic_refine)."""
+        """Every view's pose afresh: compute_extrinsic_init, then compute_extrinsic_refine."""
         camera = self.model.camera(params, obs.camera_name, obs.image_size)
         poses = [extrinsic_init(camera, o[:, :2], p)
                  for o, p in zip(obs.object_points, obs.image_points)]
@@ -105,7 +107,7 @@ class BouguetCalibrator:
     def calibrate(self, obs: Observations) -> CalibrationResult:
         t0 = time.perf_counter()
         w, h = obs.image_size
-        cc = np.array([w / 2 - 0.5, h / 2 - 0.5])  # the toolbox's (nx-1)/2, (ny-1)/2: 0-based centres
+        cc = np.array([w / 2 - 0.5, h / 2 - 0.5])  # the toolbox's ((nx-1)/2, (ny-1)/2), 0-based
         Hs = [fit_homography(o[:, :2], p) for o, p in zip(obs.object_points, obs.image_points)]
         fc = init_focal(Hs, cc, self.two_focals_init)
         params = np.concatenate([fc, cc, np.zeros(9)])

@@ -34,7 +34,8 @@ class ProjectionModel(Protocol):
 
     def project(self, params: np.ndarray, points_cam: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """points in the camera frame (N,3) -> uv (N,2), d uv/d params (N,2,P), d uv/d points_cam (N,2,3)"""
+        """points in the camera frame (N,3) -> uv (N,2), d uv/d params (N,2,P),
+        d uv/d points_cam (N,2,3)"""
         ...
 
 
@@ -131,7 +132,7 @@ class _Problem:
         return r, J_params[:, :, self.free], J_pose
 
     def normal_equations(self, r, Ja, Jb):
-        """Blocks of J^T J and J^T r: U (F,F), V (views,6,6), W (views,F,6), ga (F,), gb (views,6)."""
+        """Blocks of J^T J and J^T r: U (F,F), V (V,6,6), W (V,F,6), ga (F,), gb (V,6)."""
         Ja, Jb, r = Ja.reshape(r.size, Ja.shape[-1]), Jb.reshape(r.size, 6), r.reshape(-1)
         blocks = [(Jb[2 * a:2 * b].T @ Jb[2 * a:2 * b], Ja[2 * a:2 * b].T @ Jb[2 * a:2 * b],
                    Jb[2 * a:2 * b].T @ r[2 * a:2 * b]) for a, b in self.bounds]
@@ -240,7 +241,7 @@ def refine(model: ProjectionModel, params0, free, object_points, image_points, r
         # Marquardt's scaling sqrt(diag(J^T J)) makes the step test unit-free (MINPACK's xtol).
         scale = np.sqrt(np.concatenate([np.diag(U), np.diagonal(V, axis1=1, axis2=2).ravel()]))
         step = np.linalg.norm(scale * np.concatenate([da, db.ravel()]))
-        size = np.linalg.norm(scale * np.concatenate([x[problem.free], np.hstack([rv, tv]).ravel()]))
+        size = np.linalg.norm(scale * np.concatenate([x[problem.free], rv.ravel(), tv.ravel()]))
         decrease = cost - cost_new
         x, rv, tv, cost = x_new, rv_new, tv_new, cost_new
         lam = max(lam / 10.0, 1e-15)
