@@ -97,6 +97,27 @@ def cmd_run(args) -> int:
     return 0
 
 
+def cmd_sweep(args) -> int:
+    from .sweep import load_grid, run_sweep
+
+    grid, configs = load_grid(args.grid)
+    out = Path(args.out or Path("out") / grid.name)
+    with progress_bar() as bar:
+        task = bar.add_task(f"{grid.name}: configurations", total=len(configs))
+        result = run_sweep(grid, configs, out, args.workers,
+                           lambda d, n: bar.update(task, completed=d, total=n))
+    failed = [r["name"] for r in result["configurations"] if "error" in r]
+    stages = result["stage_time_s"]
+    console.print(f"{len(configs)} configurations in {result['wall_time_s']:.0f} s wall time "
+                  f"with {args.workers} worker(s); summed stage times: "
+                  + ", ".join(f"{k[:-2]} {v:.0f} s" for k, v in stages.items())
+                  + f"; dominant stage: {max(stages, key=stages.get)[:-2]}")
+    if failed:
+        console.print(f"[yellow]{len(failed)} configuration(s) failed (see sweep.md): {failed}")
+    console.print(f"wrote {out}/sweep.json and {out}/sweep.md")
+    return 0
+
+
 def _trial_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trials", type=int, default=1,
                    help="re-render with N seeds (seed, seed+1, ...) and report mean ± std")
@@ -140,6 +161,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comma-separated methods (default: %(default)s; also opencv-rational)")
     _trial_options(u)
     u.set_defaults(func=cmd_run)
+
+    w = sub.add_parser("sweep", help="run a grid of configurations (e.g. the paper's 40)",
+                       description="Cross rig files with patterns and environments (GRID.yaml, "
+                                   "see configs/paper_grid.yaml) and run each configuration in "
+                                   "parallel processes; one table for the whole grid.")
+    w.add_argument("grid", help="grid YAML file")
+    w.add_argument("--out", help="output directory (default: out/<grid name>)")
+    w.add_argument("--workers", type=int, default=2,
+                   help="configurations run in parallel (default: %(default)s)")
+    w.set_defaults(func=cmd_sweep)
     return p
 
 

@@ -12,7 +12,8 @@ the points are then measured as precisely as the image allows.
 * Circle grids, ``"grid"``: findCirclesGrid (retried with CALIB_CB_CLUSTERING, which copes with
   stronger perspective) with a blob detector sized from the image and the board; the returned
   grid must be locally affine (a mis-ordered grid is rejected), and every centre is re-measured at
-  full resolution as the darkness centroid of its disc.  That is the centroid of the imaged
+  full resolution as the darkness centroid of its disc (a disc cut by the image border, whose
+  centroid would be biased, becomes a NaN row).  That is the centroid of the imaged
   ellipse, which is not the image of the circle's centre under perspective: the bias is what
   circle boards really cost, and it is kept, not corrected.
 * ChArUco, ``"charuco"``: cv2.aruco.CharucoDetector, then each corner re-measured with a
@@ -308,15 +309,12 @@ def _detect_circles(gray, search: _SearchImage, pattern: SymmetricCircles | Asym
         if np.nanmax(misfit) > 0.3 * step_mm:
             reason = "findCirclesGrid returned a grid whose order is not locally affine"
             continue
-        refined = _disc_centroids(gray, points, affines, pattern)
-        if refined is None:
-            return _failed(pattern, "a disc's measuring window leaves the image")
-        return Detection(refined, pattern.ids(), True)
+        return Detection(_disc_centroids(gray, points, affines, pattern), pattern.ids(), True)
     return _failed(pattern, reason)
 
 
 def _disc_centroids(gray, points: np.ndarray, affines: np.ndarray, pattern,
-                    iterations: int = 3) -> np.ndarray | None:
+                    iterations: int = 3) -> np.ndarray:
     """Re-measure each disc centre as the centroid of its darkness, at full resolution.
 
     Through the local board -> image map (fitted to the neighbouring centres) each disc gets an
@@ -325,6 +323,7 @@ def _disc_centroids(gray, points: np.ndarray, affines: np.ndarray, pattern,
     white (absorbing shading); the weights ``white - I`` then make the centroid the area centroid of
     the imaged disc, as exact as the image's anti-aliasing.  The window is re-centred on the new
     estimate a few times, so the starting estimate need only be good to a fraction of the radius.
+    A disc cut by the image border has no trustworthy centroid: its row is NaN.
     On clean wide-camera renders this gave 0.028 px mean error against 0.039 px for the blob
     detector's own centres (same frames).
     """
@@ -334,13 +333,16 @@ def _disc_centroids(gray, points: np.ndarray, affines: np.ndarray, pattern,
     refined = points.copy()
     for i, A in enumerate(affines):
         A_inv = np.linalg.inv(A)
-        reach = r_outer * np.linalg.norm(A, 2)  # px half-extent of the window
+        reach, disc_reach = np.array([r_outer, r_inner]) * np.linalg.norm(A, 2)  # px
         for _ in range(iterations):
             cx, cy = refined[i]
-            x0, x1 = math.floor(cx - reach), math.ceil(cx + reach) + 1
-            y0, y1 = math.floor(cy - reach), math.ceil(cy + reach) + 1
-            if x0 < 0 or y0 < 0 or x1 > width or y1 > height:
-                return None
+            if not (disc_reach <= cx <= width - 1 - disc_reach
+                    and disc_reach <= cy <= height - 1 - disc_reach):
+                refined[i] = np.nan
+                break
+            # Near the border the window is cut: the ring keeps enough paper for the plane.
+            x0, x1 = max(math.floor(cx - reach), 0), min(math.ceil(cx + reach) + 1, width)
+            y0, y1 = max(math.floor(cy - reach), 0), min(math.ceil(cy + reach) + 1, height)
             ys, xs = np.mgrid[y0:y1, x0:x1]
             offsets = np.stack([xs - cx, ys - cy], -1)
             radius_mm = np.linalg.norm(offsets @ A_inv.T, axis=-1)

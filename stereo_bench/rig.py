@@ -38,29 +38,35 @@ def _axis_angle(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
     return rodrigues_to_matrix(axis * angle[..., None])
 
 
-def narrowest_half_fov(cameras: list[Camera]) -> float:
-    """tan of the smallest half field of view over the cameras (edge midpoints, undistorted)."""
+def half_fov(cameras: list[Camera]) -> tuple[float, float]:
+    """tan of the half field of view, horizontal and vertical, of the narrowest camera
+    (from the undistorted rays of the image's edge midpoints)."""
     tans = []
     for cam in cameras:
         w, h = cam.width - 1, cam.height - 1
-        mid = np.array([[0, h / 2], [w, h / 2], [w / 2, 0], [w / 2, h]])
-        tans.append(np.abs(cam.unproject(mid)).max(axis=1).min())
-    return float(min(tans))
+        xy = np.abs(cam.unproject(np.array([[0, h / 2], [w, h / 2], [w / 2, 0], [w / 2, h]])))
+        tans.append((min(xy[0, 0], xy[1, 0]), min(xy[2, 1], xy[3, 1])))
+    return tuple(np.min(tans, axis=0))
 
 
 def spring_extent(cameras: list[Camera], board_radius: float, cfg: TrajectoryConfig):
-    """Depth and radius ranges (mm) of the spring; unset ones keep the board in view.
+    """(near, far) depth and, per depth end, the helix's (horizontal, vertical) semi-axes, in mm.
 
-    At the near end the board's circumscribed circle spans 90 % of the narrowest field of view
-    (the board nearly fills it; the tilt keeps its corners in), the far end is twice as deep, and
-    the spring's radius uses 60 % of the room the field of view leaves around the board at each
-    depth. Frames where part of the board still leaves an image are reported, not hidden.
+    Unset values keep the board in view while covering as much of the images as that allows:
+    at the near end the board's circumscribed circle spans 90 % of the narrower half field of
+    view, the far end is twice as deep, and the helix is an ellipse that uses 85 % of the room
+    each field of view leaves around the board at that depth (wider images give a wider helix,
+    so the board reaches the image corners, which constrain the distortion). A configured
+    ``radius_mm`` makes the helix circular. Frames where part of the board still leaves an image
+    are reported, not hidden.
     """
-    tan = narrowest_half_fov(cameras)
-    near = board_radius / (0.9 * tan)
+    tan_h, tan_v = half_fov(cameras)
+    near = board_radius / (0.9 * min(tan_h, tan_v))
     depth = cfg.depth_mm or (near, 2.0 * near)
-    room = [max(0.0, 0.6 * (tan * d - board_radius)) for d in depth]
-    return depth, cfg.radius_mm or tuple(room)
+    if cfg.radius_mm:
+        return depth, [(r, r) for r in cfg.radius_mm]
+    return depth, [(max(0.0, 0.85 * (tan_h * d - board_radius)),
+                    max(0.0, 0.85 * (tan_v * d - board_radius))) for d in depth]
 
 
 def conical_spring(
@@ -69,8 +75,8 @@ def conical_spring(
     """world_from_board poses along the conical spring in front of ``cameras``.
 
     ``board_centre`` (3,) is the board-frame point that travels on the spring (the middle of the
-    feature points), ``board_radius`` the radius (mm) of the board outline around it. Depth is measured along the rig's mean optical axis from the mean camera
-    centre.
+    feature points), ``board_radius`` the radius (mm) of the board outline around it. Depth is
+    measured along the rig's mean optical axis from the mean camera centre.
     """
     centres = np.stack([c.center for c in cameras])
     rig_centre = centres.mean(0)
@@ -86,9 +92,9 @@ def conical_spring(
     s = np.linspace(0.0, 1.0, cfg.frames)
     phi = 2 * np.pi * cfg.turns * s
     depth = d0 + (d1 - d0) * s
-    radius = r0 + (r1 - r0) * s
-    p = (rig_centre + depth[:, None] * axis
-         + radius[:, None] * (np.cos(phi)[:, None] * right + np.sin(phi)[:, None] * down))
+    semi = np.asarray(r0) + np.outer(s, np.subtract(r1, r0))  # (F, 2) horizontal, vertical
+    p = (rig_centre + depth[:, None] * axis + (semi[:, :1] * np.cos(phi)[:, None]) * right
+         + (semi[:, 1:] * np.sin(phi)[:, None]) * down)
 
     # Facing frame: z from the rig centre through the board centre (OpenCV boards have +z
     # pointing away from a camera that sees their front), x as close to the rig's right as can be.

@@ -72,8 +72,8 @@ def test_trajectory_is_a_conical_spring_facing_the_rig():
     # Depth grows linearly along the rig axis (world z here) from near to far, and so does the
     # radius of the helix around it.
     assert np.allclose(p[:, 2], np.linspace(*depth, cfg.trajectory.frames))
-    radius = np.linalg.norm(p[:, :2], axis=1)
-    assert np.allclose(radius, np.linspace(*radii, cfg.trajectory.frames))
+    semi = np.linspace(*radii, cfg.trajectory.frames)  # (F, 2) ellipse semi-axes
+    assert np.allclose(np.hypot(p[:, 0] / semi[:, 0], p[:, 1] / semi[:, 1]), 1.0)
     # Board normal makes exactly the configured tilt with the line of sight to the rig centre.
     normal = rig.trajectory.rotations[:, :, 2]
     sight = p / np.linalg.norm(p, axis=1, keepdims=True)

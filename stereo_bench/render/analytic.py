@@ -107,8 +107,8 @@ class PixelRays:
     with a one-pixel margin ring, ``xy[v + 1, u + 1]`` is pixel (u, v) (the margin lets the
     sub-pixel samples of edge pixels interpolate). Computed in float64 by ``Camera.unproject``
     (Newton to 1e-10 px); float32 storage rounds by at most 3e-8 (1e-4 px at f = 3000 px).
-    ``node_uv`` (h, w, 2) / ``node_xy`` (h, w, 2) float64: a coarse grid of pixel positions (every
-    ``_CELL`` px, clamped to the image) and their exact rays, to locate the board per frame.
+    ``node_xy`` (h, w, 2) float64: exact rays of a coarse grid of pixels (every ``_CELL`` px,
+    clamped to the image), to locate the board per frame.
     """
 
     def __init__(self, camera: Camera, chunk_points: int = 1 << 15):
@@ -124,8 +124,7 @@ class PixelRays:
             self.xy[r0:r0 + len(v)] = camera.unproject(uv)
         nodes_u = np.minimum(np.arange(0, W - 1 + _CELL, _CELL), W - 1)
         nodes_v = np.minimum(np.arange(0, H - 1 + _CELL, _CELL), H - 1)
-        self.node_uv = np.stack(np.meshgrid(nodes_u, nodes_v), -1).astype(np.float64)
-        self.node_xy = camera.unproject(self.node_uv)
+        self.node_xy = camera.unproject(np.stack(np.meshgrid(nodes_u, nodes_v), -1).astype(float))
 
 
 def gaussian_noise(rng: np.random.Generator, shape: tuple[int, int]) -> np.ndarray:
@@ -211,12 +210,12 @@ class AnalyticRenderer:
         normal_dot = R[:, 2] @ t  # > 0: the printed front faces the camera
         if corners[:, 2].max() <= 0 or abs(normal_dot) <= 1e-9 * np.linalg.norm(t):
             return []  # behind the camera, or seen exactly edge-on
-        straddles = corners[:, 2].min() <= 0
         # board_from_normalized, scaled so the homogeneous w is z_ref / depth (order 1; see _PAD).
         B = np.linalg.inv(np.column_stack([R[:, 0], R[:, 1], t])) * corners[:, 2].max()
-        strips, footprint = self._locate(B, R, t)
+        strips, footprint, horizon_near = self._locate(B, R, t)
         if not strips:
             return []
+        clip = horizon_near or corners[:, 2].min() <= 0
         s = self.settings.supersampling
         level = self._level(footprint / s, front=normal_dot > 0, R=R, t=t)
         A = np.array([[level.px_per_mm, 0, -level.texel_offset[0]],
@@ -225,7 +224,7 @@ class AnalyticRenderer:
         border = round(self.settings.background * 256)
         for r0, r1, c0, c1 in strips:
             xy = self.rays.xy[r0:r1 + 2, c0:c1 + 2]  # pixels r0-1..r1, c0-1..c1
-            texels = _sample_texels(xy, M, s, straddles)
+            texels = _sample_texels(xy, M, s, clip)
             samples = cv2.remap(level.image, texels, None, cv2.INTER_LINEAR,
                                 borderMode=cv2.BORDER_CONSTANT, borderValue=border)
             canvas[r0:r1, c0:c1] = cv2.resize(samples, (c1 - c0, r1 - r0),
@@ -235,9 +234,11 @@ class AnalyticRenderer:
     def _locate(self, B: np.ndarray, R: np.ndarray, t: np.ndarray):
         """Where the board is in the image and how large a pixel is on it.
 
-        Returns (strips, footprint): pixel row/column ranges [(r0, r1, c0, c1)] that contain
-        every pixel seeing the board, and the largest pixel footprint on the board (mm per px,
-        the largest singular value of d(board)/d(pixel)) over the visible board.
+        Returns (strips, footprint, horizon_near): pixel row/column ranges [(r0, r1, c0, c1)]
+        that contain every pixel seeing the board; the largest pixel footprint on the board (mm
+        per px, the largest singular value of d(board)/d(pixel)) over the visible board; whether
+        some ray in or next to the strips meets the plane behind the camera (or never), where
+        the texel map is not smooth and must not be interpolated.
         """
         rays, cam = self.rays, self.camera
         (x0, y0), (w, h) = self._origin, self._size
@@ -270,8 +271,15 @@ class AnalyticRenderer:
         cells = np.clip(np.floor(euv / _CELL).astype(int), 0, [nc[1] - 1, nc[0] - 1])
         marked[cells[:, 1], cells[:, 0]] = 1
         if not marked.any():
-            return [], 0.0
+            return [], 0.0, False
         marked = cv2.dilate(marked, np.ones((3, 3), np.uint8))
+        # Nodes of the marked cells (node (a, b) is a corner of cells a-1..a, b-1..b) and one
+        # more ring, for the strips' margin pixels.
+        near = np.zeros(hit.shape, np.uint8)
+        rows, cols = min(near.shape[0], nc[0]), min(near.shape[1], nc[1])
+        near[:rows, :cols] = marked[:rows, :cols]
+        near = cv2.dilate(near, np.ones((4, 4), np.uint8), anchor=(2, 2))
+        horizon_near = bool(np.any(~(q[..., 2] > 0) & (near > 0)))
         strips = []
         for a in np.flatnonzero(marked.any(axis=1)):
             cols = np.flatnonzero(marked[a])
@@ -279,7 +287,8 @@ class AnalyticRenderer:
                            cols[0] * _CELL, min((cols[-1] + 1) * _CELL, W)))
 
         # The footprint varies smoothly: a sparse subset of the outline points is enough.
-        return strips, self._footprint(np.concatenate([rays.node_xy[hit], exy[::16]]), B)
+        footprint = self._footprint(np.concatenate([rays.node_xy[hit], exy[::16]]), B)
+        return strips, footprint, horizon_near
 
     def _footprint(self, xy: np.ndarray, B: np.ndarray) -> float:
         """Largest pixel footprint (mm per px) at normalized points xy (N, 2) on the board."""
@@ -322,7 +331,7 @@ class AnalyticRenderer:
         if not front:  # the back of the board is blank paper
             inner[...] = round(st.white_level * 256)
         if st.environment == "noisy":
-            gain = self._shading(inner.shape, level, R, t, front)
+            gain = self._shading(inner.shape, R, t, front)
             inner[...] = cv2.multiply(inner, gain, dtype=cv2.CV_16U)
         return _Level(image, level.px_per_mm, level.texel_offset)
 
@@ -342,7 +351,7 @@ class AnalyticRenderer:
         # Texel (j, i) centre is at origin + (j + 0.5, i + 0.5) / px_per_mm, before padding.
         return _Level(image, px_per_mm, self._origin * px_per_mm + 0.5 - _PAD)
 
-    def _shading(self, shape, level: _Level, R, t, front: bool) -> np.ndarray:
+    def _shading(self, shape, R, t, front: bool) -> np.ndarray:
         """(H, W) float32 light gain over the level's texels: ambient + Lambert from the lamp.
 
         The lamp sits ``light_distance_mm`` from the world origin against ``light_direction``;
