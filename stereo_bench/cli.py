@@ -164,7 +164,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     w = sub.add_parser("sweep", help="run a grid of configurations (e.g. the paper's 40)",
                        description="Cross rig files with patterns and environments (GRID.yaml, "
-                                   "see configs/paper_grid.yaml) and run each configuration in "
+                                   "see configs/grids/paper.yaml) and run each configuration in "
                                    "parallel processes; one table for the whole grid.")
     w.add_argument("grid", help="grid YAML file")
     w.add_argument("--out", help="output directory (default: out/<grid name>)")

@@ -9,7 +9,8 @@ import yaml
 from stereo_bench.config import ConfigError, load_rig, parse_rig
 from stereo_bench.rig import Rig, spring_extent
 
-CONFIGS = sorted(Path(__file__).parent.parent.joinpath("configs").rglob("*.yaml"))
+CONFIGS = sorted(p for p in Path(__file__).parent.parent.joinpath("configs").rglob("*.yaml")
+                 if p.parent.name != "grids")
 QUICK = Path(__file__).parent.parent / "configs" / "quickstart.yaml"
 
 

@@ -262,12 +262,17 @@ class ConversionReport:
 
 
 def tsai_to_opencv(params: np.ndarray, width: int, height: int, name: str = "camera",
-                   grid: int = 161) -> tuple[Camera, ConversionReport]:
-    """Camera with fx = sx f, fy = f and OpenCV k1, k2, k3 fitted to Tsai's distortion.
+                   grid: int = 161, tolerance_px: float = 0.01) -> tuple[Camera, ConversionReport]:
+    """Camera with fx = sx f, fy = f and OpenCV radial coefficients fitted to Tsai's distortion.
 
     Every pixel of a grid x grid lattice over the image (borders and corners included) is
-    undistorted exactly by eq. (3); k1..k3 minimise, linearly, the pixel distance between
-    OpenCV's forward projection of that undistorted point and the pixel itself.
+    undistorted exactly by eq. (3); the radial coefficients minimise, linearly, the pixel
+    distance between OpenCV's forward projection of that undistorted point and the pixel
+    itself. k1, k2, k3 first; when they leave more than ``tolerance_px`` (strong lenses: about
+    2 px at the corners of the paper's wide-angle camera), the rational model k1..k6 is fitted
+    instead (linearized as num - rho den = 0), so the conversion does not pollute the
+    comparison. This is a dense deterministic fit of a known function, so the rational
+    model's non-identifiability from planar views (TRAPS.md) does not apply.
     """
     f, sx, cx, cy, k = np.asarray(params, dtype=np.float64)
     u, v = np.meshgrid(np.linspace(0, width - 1, grid), np.linspace(0, height - 1, grid))
@@ -281,20 +286,33 @@ def tsai_to_opencv(params: np.ndarray, width: int, height: int, name: str = "cam
     r2 = np.sum(xy * xy, axis=1)
     rho = 1.0 / (1.0 + k * rd2)                        # exact OpenCV radial factor wanted
     fxy = np.array([sx * f, f])
-    # Pixel residual of OpenCV's map: fxy * xy * (1 + k1 r2 + k2 r2^2 + k3 r2^3 - rho).
+    # Pixel residual of OpenCV's map: fxy * xy * (radial(r2) - rho).
     a = (fxy * xy).T.reshape(-1)                      # u rows, then v rows
-    r2a = np.concatenate([r2, r2])
-    A = a[:, None] * np.stack([r2a, r2a**2, r2a**3], 1)
-    b = a * (np.concatenate([rho, rho]) - 1.0)
-    scale = np.linalg.norm(A, axis=0)  # r2^3 is ~100x smaller than r2: equilibrate the columns
-    kk = np.linalg.lstsq(A / scale, b, rcond=None)[0] / scale
-    res = (A @ kk - b).reshape(2, -1)
-    err = np.hypot(res[0], res[1])
+    r2a, rhoa = np.concatenate([r2, r2]), np.concatenate([rho, rho])
+    powers = np.stack([r2a, r2a**2, r2a**3], 1)
+
+    def fit(A):
+        scale = np.linalg.norm(A, axis=0)  # r2^3 is ~100x smaller than r2: equilibrate
+        return np.linalg.lstsq(A / scale, a * (rhoa - 1.0), rcond=None)[0] / scale
+
+    kk = fit(a[:, None] * powers)
+    dist = np.array([kk[0], kk[1], 0, 0, kk[2], 0, 0, 0])
+    err = _conversion_error(dist, r2, rho, fxy, xy)
+    if err.max() > tolerance_px:
+        kk = fit(a[:, None] * np.hstack([powers, -rhoa[:, None] * powers]))
+        dist = np.array([kk[0], kk[1], 0, 0, kk[2], kk[3], kk[4], kk[5]])
+        err = _conversion_error(dist, r2, rho, fxy, xy)
     K = k * f * f
-    cam = Camera(name, width, height, sx * f, f, cx, cy, 0.0,
-                 np.array([kk[0], kk[1], 0, 0, kk[2], 0, 0, 0]))
+    cam = Camera(name, width, height, sx * f, f, cx, cy, 0.0, dist)
     return cam, ConversionReport(float(err.max()), float(np.sqrt(np.mean(err**2))),
                                  (float(-K), float(3 * K * K), float(-12 * K**3)))
+
+
+def _conversion_error(dist, r2, rho, fxy, xy) -> np.ndarray:
+    """Pixel distance between OpenCV's radial map with ``dist`` and Tsai's exact one."""
+    k1, k2, _, _, k3, k4, k5, k6 = dist
+    radial = (1 + k1 * r2 + k2 * r2**2 + k3 * r2**3) / (1 + k4 * r2 + k5 * r2**2 + k6 * r2**3)
+    return np.linalg.norm(fxy * xy * (radial - rho)[:, None], axis=1)
 
 
 # ----------------------------------------------------------------------------------------------
