@@ -31,7 +31,8 @@ OpenPose files (:func:`read_openpose`, :func:`write_openpose`), one per camera a
     {"people": [{"pose_keypoints_2d": [x0, y0, c0, x1, y1, c1, ...]}]}
 
 with exactly the 24 SMPL joints in SMPL's order (pose_eval.motion.JOINT_NAMES), pixels in
-OpenCV's convention, and the first person taken. OpenPose's own BODY_25 or COCO layouts have
+OpenCV's convention, and the first person taken. The frame number (from 0) is the digits before
+``_keypoints.json``, so OpenPose's own ``<video>_<frame:012d>_keypoints.json`` names work too. OpenPose's own BODY_25 or COCO layouts have
 other joints (no spine, no collars) and must be mapped to SMPL's 24 first; a file with another
 count is refused. c = 0 (OpenPose's "not detected") or a missing file means no detection.
 """
@@ -179,34 +180,45 @@ def _keypoint_path(folder: Path, camera: Camera, frame: int) -> Path:
     return folder / camera.name / f"{frame:06d}_keypoints.json"
 
 
+def _frame_files(folder: Path, cameras: list[Camera]) -> list[dict[int, Path]]:
+    """Per camera, frame number -> keypoint file (the digits before ``_keypoints.json``)."""
+    found = []
+    for cam in cameras:
+        if not (folder / cam.name).is_dir():
+            raise FileNotFoundError(f"{folder / cam.name}: no keypoint folder for camera "
+                                    f"{cam.name!r}; expected <camera>/<frame:06d>_keypoints.json")
+        files = {}
+        for path in (folder / cam.name).glob("*_keypoints.json"):
+            number = path.name[:-len("_keypoints.json")].rsplit("_", 1)[-1]
+            if not number.isdigit():
+                raise ValueError(f"{path}: expected a frame number before _keypoints.json")
+            files[int(number)] = path
+        found.append(files)
+    return found
+
+
 def read_openpose(folder, cameras: list[Camera], frames: int | None = None) -> Keypoints:
     """Detections from OpenPose-style JSON files (layout and joint order in the module notes).
 
     frames: how many frames (0 .. frames-1) to read; None reads up to the highest frame number
     found. Missing files, an empty ``people`` list and c = 0 mean "not detected".
     """
-    folder = Path(folder)
-    for cam in cameras:
-        if not (folder / cam.name).is_dir():
-            raise FileNotFoundError(f"{folder / cam.name}: no keypoint folder for camera "
-                                    f"{cam.name!r}; expected <camera>/<frame:06d>_keypoints.json")
+    files = _frame_files(Path(folder), cameras)
     if frames is None:
-        numbers = [int(p.name.split("_", 1)[0]) for cam in cameras
-                   for p in (folder / cam.name).glob("*_keypoints.json")]
-        if not numbers:
+        if not any(files):
             raise FileNotFoundError(f"{folder}: no <frame:06d>_keypoints.json files")
-        frames = max(numbers) + 1
+        frames = max(max(f) for f in files if f) + 1
     pixels = np.full((len(cameras), frames, NUM_JOINTS, 2), np.nan)
     confidence = np.zeros((len(cameras), frames, NUM_JOINTS))
-    for c, cam in enumerate(cameras):
-        for t in range(frames):
-            path = _keypoint_path(folder, cam, t)
-            if not path.is_file():
+    for c in range(len(cameras)):
+        for t, path in files[c].items():
+            if t >= frames:
                 continue
             try:
                 people = json.loads(path.read_text())["people"]
             except (json.JSONDecodeError, KeyError, TypeError) as e:
-                raise ValueError(f"{path}: expected OpenPose JSON with a 'people' list ({e})") from None
+                raise ValueError(f"{path}: expected OpenPose JSON with a 'people' list "
+                                 f"({e})") from None
             if not people:
                 continue
             values = np.asarray(people[0].get("pose_keypoints_2d", []), dtype=np.float64)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stereo_bench.camera import Camera, DistortionNotInvertibleError, radial_fold_radius, undistort_normalized
+from stereo_bench.camera import Camera, radial_fold_radius, undistort_normalized
 from stereo_bench.triangulate import refine_points, triangulate_dlt, triangulate_robust
 
 from .observe import Keypoints
@@ -40,13 +40,9 @@ def triangulate_joints(cameras: list[Camera], keypoints: Keypoints, robust: bool
     weights = keypoints.confidence.copy()
     dropped = 0
     for c, cam in enumerate(cameras):
-        seen = weights[c] > 0
-        try:
-            cam.unproject(pixels[c][seen])
-        except DistortionNotInvertibleError:
-            bad = seen & ~invertible(cam, np.nan_to_num(pixels[c]))
-            pixels[c][bad], weights[c][bad] = np.nan, 0.0
-            dropped += int(bad.sum())
+        bad = (weights[c] > 0) & ~invertible(cam, np.nan_to_num(pixels[c]))
+        pixels[c][bad], weights[c][bad] = np.nan, 0.0
+        dropped += int(bad.sum())
     if robust:
         return triangulate_robust(cameras, pixels, weights, threshold_px=threshold_px)[0], dropped
     start = triangulate_dlt(cameras, pixels, weights)

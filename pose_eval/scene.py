@@ -1,4 +1,4 @@
-"""The scene of a pose evaluation: a moving SMPL body in front of a rig, and the rigs it is seen through.
+"""The scene of a pose evaluation: a moving SMPL body in front of a rig, and the rigs that see it.
 
 Placement. A motion lives in SMPL's body frame (metres, y up, facing +z, floor at y = 0). It
 enters the rig's world (mm) by one rigid transform: SMPL's up goes to the rig's up (the mean of
@@ -11,18 +11,17 @@ distance is the smallest at which every vertex of every frame projects inside ev
 a 5 % margin, found by bisection through the true cameras (exact projection, distortion
 included); a walking body therefore fills the narrowest view.
 
-Rigs. A ``stereo-bench`` run directory holds, per trial seed, the true cameras and one estimated
-rig per calibration method. An estimated rig is expressed in its reference camera's frame
-(cam_from_world = cam_from_cam0). To triangulate in the true world, :func:`in_true_world` puts
-the estimate's camera 0 at the TRUE pose of camera 0: the reference camera's own pose is not
-something a calibration method estimates, so only the relative poses and intrinsics it did
-estimate reach the error. Scale needs no alignment: the board is metric, so the estimated
-baseline is in mm.
+Rigs. A ``stereo-bench`` run directory holds, per trial seed, the true cameras and one
+estimated rig per calibration method (read by ``stereo_bench.pipeline.load_run``). An estimated
+rig is expressed in its reference camera's frame (cam_from_world = cam_from_cam0). To
+triangulate in the true world, :func:`in_true_world` puts the estimate's camera 0 at the TRUE
+pose of camera 0: the reference camera's own pose is not something a calibration method
+estimates, so only the relative poses and intrinsics it did estimate reach the error. Scale
+needs no alignment: the board is metric, so the estimated baseline is in mm.
 """
 
 from __future__ import annotations
 
-import json
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,7 +32,7 @@ from scipy.spatial import ConvexHull
 from stereo_bench.camera import Camera, compose, matrix_to_rodrigues, radial_fold_radius
 from stereo_bench.config import load_rig
 
-from .body import forward, load_body_model, to_mm
+from .body import forward, load_body_model, rest_skeleton, to_mm
 from .motion import make_motion
 
 VIEW_MARGIN = 0.05  # fraction of the image size kept free on every side
@@ -58,6 +57,10 @@ def rig_axes(cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     """(mean camera centre, unit mean optical axis, unit up orthogonal to it), world frame."""
     centre = np.mean([c.center for c in cameras], axis=0)
     axis = np.mean([c.R[2] for c in cameras], axis=0)
+    if np.linalg.norm(axis) < 0.5:
+        raise ValueError("the cameras do not look the same way (their mean optical axis is "
+                         f"{np.linalg.norm(axis):.2f} long): placing a body in front of a rig "
+                         "that surrounds it is not supported")
     axis /= np.linalg.norm(axis)
     up = -np.mean([c.R[1] for c in cameras], axis=0)  # OpenCV's image y points down
     up -= (up @ axis) * axis
@@ -115,7 +118,8 @@ def place_body(cameras: list[Camera], joints_m: np.ndarray, vertices_m: np.ndarr
             near, far = (near, mid) if fits(mid) else (mid, far)
         distance_mm = far
     elif not fits(distance_mm):
-        out = [c.name for c in cameras if not in_view(c, world(hull, distance_mm), VIEW_MARGIN).all()]
+        out = [c.name for c in cameras
+               if not in_view(c, world(hull, distance_mm), VIEW_MARGIN).all()]
         warnings.warn(f"distance_mm={distance_mm:g}: the body leaves the view of {out} (with a "
                       f"{VIEW_MARGIN:.0%} margin); joints outside an image are not observed there")
     t = centre + distance_mm * axis - R @ swept_centre
@@ -124,75 +128,18 @@ def place_body(cameras: list[Camera], joints_m: np.ndarray, vertices_m: np.ndarr
 
 
 def make_scene(cameras: list[Camera], motion: str, frames: int, fps: float = 30.0, model=None,
-               distance_mm: float | None = None, seed: int | None = None) -> Scene:
-    """The procedural ``motion`` (pose_eval.motion.MOTIONS) posed by ``model`` (default: the
-    shipped stand-in body) and placed in front of ``cameras``."""
+               distance_mm: float | None = None) -> Scene:
+    """The procedural ``motion`` (pose_eval.motion.MOTIONS), written for and posed by ``model``
+    (default: the shipped stand-in body), placed in front of ``cameras``."""
     model = model if model is not None else load_body_model()
-    m = make_motion(motion, frames, fps=fps, seed=seed)
+    m = make_motion(motion, frames, fps=fps, skeleton=rest_skeleton(model))
     joints, vertices = forward(model, m.body_pose, m.global_orient, m.transl, m.betas)
     return place_body(cameras, joints, vertices, model.faces, distance_mm)
 
 
 # ----------------------------------------------------------------------------------------------
-# Rigs: the true one, and the estimates of a stereo-bench run
+# The estimates of a stereo-bench run
 # ----------------------------------------------------------------------------------------------
-
-@dataclass(frozen=True, eq=False)
-class RunTrial:
-    """One trial seed of a run: the true cameras and, per method, its estimated rig (cameras
-    in the reference camera's frame) or the error message of its failure."""
-
-    seed: int
-    truth: list[Camera]
-    rigs: dict[str, list[Camera] | str]
-
-
-def _read_json(path: Path) -> dict | list:
-    try:
-        return json.loads(path.read_text())
-    except OSError as e:
-        raise FileNotFoundError(f"{path}: cannot read ({e.strerror})") from None
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: not valid JSON ({e})") from None
-
-
-def _cameras(entries, source: Path) -> list[Camera]:
-    if not isinstance(entries, list) or not entries:
-        raise ValueError(f"{source}: expected a non-empty list of cameras")
-    return [Camera.from_dict(d, source=f"{source}: camera {i}") for i, d in enumerate(entries)]
-
-
-def load_run(run_dir) -> list[RunTrial]:
-    """Every trial of a ``stereo-bench`` run directory, in seed order.
-
-    Layout read: RUN/trials/seed_<s>/dataset/ground_truth/cameras.json (the true cameras) and
-    RUN/trials/seed_<s>/rig/<method>.json ({"method", "reference", "cameras", "rms_px"}, or
-    {"method", "error"} for a method that failed).
-    """
-    run = Path(run_dir)
-    if not run.is_dir():
-        raise FileNotFoundError(f"run directory {run} does not exist; write it with "
-                                f"`stereo-bench RIG.yaml --out {run}`")
-    seeds = sorted((p for p in (run / "trials").glob("seed_*") if p.is_dir()),
-                   key=lambda p: int(p.name.split("_", 1)[1]))
-    if not seeds:
-        raise FileNotFoundError(f"{run}: no trials/seed_<s>/ folders; is it a stereo-bench run?")
-    trials = []
-    for folder in seeds:
-        truth_path = folder / "dataset" / "ground_truth" / "cameras.json"
-        truth = _cameras(_read_json(truth_path), truth_path)
-        rigs = {}
-        for path in sorted((folder / "rig").glob("*.json")):
-            entry = _read_json(path)
-            if not isinstance(entry, dict):
-                raise ValueError(f"{path}: expected an object with 'method' and 'cameras' or "
-                                 f"'error'")
-            name = entry.get("method", path.stem)
-            rigs[name] = (str(entry["error"]) if "error" in entry
-                          else _cameras(entry.get("cameras"), path))
-        trials.append(RunTrial(int(folder.name.split("_", 1)[1]), truth, rigs))
-    return trials
-
 
 def run_description(run_dir) -> tuple[str, str]:
     """(rig name, environment kind) of a run, from its first trial's dataset/config.yaml."""

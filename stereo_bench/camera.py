@@ -153,11 +153,12 @@ def invert(R: np.ndarray, t: np.ndarray):
 
 def distort(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
     """Apply OpenCV distortion to normalized points (..., 2) -> distorted normalized (..., 2)."""
-    return distort_with_jacobians(xy, dist)[0]
+    return distort_with_jacobians(xy, dist, wrt_dist=False)[0]
 
 
-def distort_with_jacobians(xy: np.ndarray, dist: np.ndarray):
-    """Distort normalized points and return (xd (...,2), d xd/d xy (...,2,2), d xd/d dist (...,2,8))."""
+def distort_with_jacobians(xy: np.ndarray, dist: np.ndarray, wrt_dist: bool = True):
+    """Distort normalized points and return (xd (...,2), d xd/d xy (...,2,2), d xd/d dist
+    (...,2,8) or None when ``wrt_dist`` is False, which Newton's unprojection does not need)."""
     xy = np.asarray(xy, dtype=np.float64)
     k1, k2, p1, p2, k3, k4, k5, k6 = np.asarray(dist, dtype=np.float64)
     x, y = xy[..., 0], xy[..., 1]
@@ -178,6 +179,8 @@ def distort_with_jacobians(xy: np.ndarray, dist: np.ndarray):
     J[..., 1, 0] = y * drad_dr2 * 2 * x + 2 * p1 * x + 2 * p2 * y
     J[..., 1, 1] = radial + y * drad_dr2 * 2 * y + 6 * p1 * y + 2 * p2 * x
 
+    if not wrt_dist:
+        return np.stack([xd, yd], -1), J, None
     Jd = np.zeros(xy.shape[:-1] + (2, 8))
     for i, rp in ((0, r2), (1, r4), (4, r6)):  # k1, k2, k3 enter the numerator
         Jd[..., 0, i] = x * rp / den
@@ -221,27 +224,34 @@ def undistort_normalized(
     """
     xd = np.asarray(xd, dtype=np.float64)
     dist = np.asarray(dist, dtype=np.float64)
-    xy = xd.copy()
+    shape = xd.shape[:-1]
+    target = xd.reshape(-1, 2)
+    xy = target.copy()
+    converged = np.zeros(len(xy), dtype=bool)
     if not np.any(dist):
-        return xy, np.ones(xd.shape[:-1], dtype=bool)
-    converged = np.zeros(xd.shape[:-1], dtype=bool)
+        return xy.reshape(xd.shape), np.ones(shape, dtype=bool)
+    # Iterate only on the points not yet converged: most converge in a few steps, and a whole
+    # 4096x3072 image would otherwise be re-evaluated until its slowest pixel is done.
+    active = np.arange(len(xy))
     for _ in range(max_iter):
-        f, J, _ = distort_with_jacobians(xy, dist)
-        res = f - xd
-        converged = np.max(np.abs(res), axis=-1) < tol
-        if np.all(converged):
+        p, goal = xy[active], target[active]
+        f, J, _ = distort_with_jacobians(p, dist, wrt_dist=False)
+        res = f - goal
+        done = np.max(np.abs(res), axis=-1) < tol
+        converged[active[done]] = True
+        keep = ~done
+        active, p, res, J = active[keep], p[keep], res[keep], J[keep]
+        if len(active) == 0:
             break
-        det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
+        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
         det = np.where(np.abs(det) < 1e-300, 1e-300, det)
-        dx = (J[..., 1, 1] * res[..., 0] - J[..., 0, 1] * res[..., 1]) / det
-        dy = (-J[..., 1, 0] * res[..., 0] + J[..., 0, 0] * res[..., 1]) / det
-        step = np.stack([dx, dy], -1)
+        step = np.stack([(J[:, 1, 1] * res[:, 0] - J[:, 0, 1] * res[:, 1]) / det,
+                         (-J[:, 1, 0] * res[:, 0] + J[:, 0, 0] * res[:, 1]) / det], -1)
         # Damp steps that would jump far (far outside the valid region Newton can overshoot).
         n = np.linalg.norm(step, axis=-1, keepdims=True)
-        lim = 0.5 * (1.0 + np.linalg.norm(xy, axis=-1, keepdims=True))
-        step = np.where(n > lim, step * lim / np.maximum(n, 1e-300), step)
-        xy = xy - np.where(converged[..., None], 0.0, step)
-    return xy, converged
+        lim = 0.5 * (1.0 + np.linalg.norm(p, axis=-1, keepdims=True))
+        xy[active] = p - np.where(n > lim, step * lim / np.maximum(n, 1e-300), step)
+    return xy.reshape(xd.shape), converged.reshape(shape)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -278,7 +288,7 @@ def project_with_jacobians(
     Pc = P @ R.T + np.asarray(tvec, dtype=np.float64)
     z = Pc[:, 2]
     xy = Pc[:, :2] / z[:, None]
-    xd, Jxy, Jdist = distort_with_jacobians(xy, dist)
+    xd, Jxy, Jdist = distort_with_jacobians(xy, dist, wrt_dist=jacobians)
     uv = np.stack([fx * xd[:, 0] + s * xd[:, 1] + cx, fy * xd[:, 1] + cy], -1)
     if not jacobians:
         return uv, None

@@ -97,7 +97,7 @@ class EnvironmentConfig(_Strict):
     ambient: float = Field(0.35, ge=0, le=1)
     blur_sigma_px: float = Field(0.0, ge=0)
     background: int = Field(110, ge=0, le=255)
-    supersampling: int = Field(4, ge=1, le=16)
+    supersampling: int = Field(2, ge=1, le=16)
 
 
 class RigConfig(_Strict):

@@ -13,10 +13,17 @@ factor): each pixel is the mean of ``s x s`` samples at offsets ``(k + 0.5) / s 
 (k = 0..s-1) in u and v, and each sample reads a texture rasterised (exact area coverage, by the
 pattern) at texels no finer than the footprint of one sample on the board, so a bilinear read
 does not alias. All filters are point-symmetric about the pixel centre, so edges and corners are
-not shifted. The sample positions come from the exact per-pixel rays by bilinear interpolation
-of the per-frame texel coordinates, a smooth map (error < 1e-3 px, tests/test_render.py); exact
-rays for every sample would cost s^2 times the memory and precomputation (1.6 GB and ~5 min at
-s = 4 on a 4096 x 3072 camera).
+not shifted. One texture level serves the whole frame (no seams between levels), chosen for the
+board's farthest, most foreshortened part; nearer parts get a coarser texture than they need,
+i.e. extra symmetric blur: on the paper's trajectories the footprint varies across the board by
+a factor of 1.5-1.7 in the median frame and up to 2.5, so there the texel spans up to 2.5
+samples (1.25 px at s = 2).
+
+The sample positions come from the exact per-pixel rays by bilinear interpolation of the
+per-frame texel coordinates where that map is smooth (error < 1e-3 px, tests/test_render.py),
+else of the rays themselves with the homography applied per sample (30-50 % slower). Exact rays
+for every sample would cost s^2 times the memory and precomputation (1.6 GB and ~5 min at s = 4
+on a 4096 x 3072 camera).
 
 Conventions: millimetres, OpenCV pixel centres (top-left pixel centre = (0, 0)),
 ``p_cam = R @ p_board + t`` for ``cam_from_board = (R, t)``.
@@ -39,6 +46,7 @@ _PAD = 2           # background texels around every texture (also absorbs perspe
 _CELL = 32         # px, coarse grid used to find the board's image region and footprint
 _OUTLINE_POINTS = 1024  # samples per outline edge when locating the board's image region
 _OUTSIDE = -1.0e4  # texel coordinate far outside every texture
+_MAX_DEPTH_SLOPE = 2e-3  # per px: interpolating texel coordinates is accurate to 5e-4 px below
 _LEVELS_PER_OCTAVE = 4
 _LEVELS_KEPT = 4   # texture levels cached per renderer (<= 4 x 32 MiB at the default cap)
 
@@ -48,8 +56,8 @@ class RenderSettings:
     """How a frame is rendered (gray levels are 8-bit units, 0..255).
 
     supersampling: s, the pixel is the mean of s x s samples (box filter over the pixel area).
-    texel_per_sample: texture resolution policy, texel size / footprint of one sample on the board
-        (largest over the visible board; 1 = classic mipmapping, larger = blurrier, smaller aliases).
+    texel_per_sample: texture resolution policy, texel size / footprint of one sample on the
+        board (largest over the visible board; 1 = mipmapping, larger blurs, smaller aliases).
     max_texture_texels: cap on the texture size (memory); beyond it the texture is coarser than the
         policy asks (blurrier, never aliased).
     background: gray level where no board is seen.
@@ -212,19 +220,18 @@ class AnalyticRenderer:
             return []  # behind the camera, or seen exactly edge-on
         # board_from_normalized, scaled so the homogeneous w is z_ref / depth (order 1; see _PAD).
         B = np.linalg.inv(np.column_stack([R[:, 0], R[:, 1], t])) * corners[:, 2].max()
-        strips, footprint, horizon_near = self._locate(B, R, t)
+        strips, footprint = self._locate(B, R, t)
         if not strips:
             return []
-        clip = horizon_near or corners[:, 2].min() <= 0
         s = self.settings.supersampling
         level = self._level(footprint / s, front=normal_dot > 0, R=R, t=t)
         A = np.array([[level.px_per_mm, 0, -level.texel_offset[0]],
                       [0, level.px_per_mm, -level.texel_offset[1]], [0, 0, 1]])
         M = A @ B  # normalized (x, y) -> texel (j, i) of the level
         border = round(self.settings.background * 256)
-        for r0, r1, c0, c1 in strips:
+        for r0, r1, c0, c1, exact in strips:
             xy = self.rays.xy[r0:r1 + 2, c0:c1 + 2]  # pixels r0-1..r1, c0-1..c1
-            texels = _sample_texels(xy, M, s, clip)
+            texels = _sample_texels(xy, M, s, exact)
             samples = cv2.remap(level.image, texels, None, cv2.INTER_LINEAR,
                                 borderMode=cv2.BORDER_CONSTANT, borderValue=border)
             canvas[r0:r1, c0:c1] = cv2.resize(samples, (c1 - c0, r1 - r0),
@@ -232,21 +239,32 @@ class AnalyticRenderer:
         return strips
 
     def _locate(self, B: np.ndarray, R: np.ndarray, t: np.ndarray):
-        """Where the board is in the image and how large a pixel is on it.
+        """Where the board is in the image, and how large a pixel is on it.
 
-        Returns (strips, footprint, horizon_near): pixel row/column ranges [(r0, r1, c0, c1)]
-        that contain every pixel seeing the board; the largest pixel footprint on the board (mm
-        per px, the largest singular value of d(board)/d(pixel)) over the visible board; whether
-        some ray in or next to the strips meets the plane behind the camera (or never), where
-        the texel map is not smooth and must not be interpolated.
+        Works on the coarse nodes (cells of ``_CELL`` px) plus points along the outline, so
+        slivers thinner than a cell are found too. Returns (strips, footprint):
+
+        * strips [(r0, r1, c0, c1, exact)]: pixel row/column ranges that contain every pixel
+          seeing the board (and a margin of one cell); ``exact`` where the texel map is not
+          smooth enough to interpolate: near the plane's horizon, or where rays meet the plane
+          behind the camera (w <= 0), or where depth changes by more than ``_MAX_DEPTH_SLOPE``
+          per pixel (interpolation error (1/4) |w'| / w px, bilinear midpoint error of a/w);
+        * footprint: the largest pixel footprint on the visible board, mm per px.
         """
         rays, cam = self.rays, self.camera
+        H, W = cam.height, cam.width
         (x0, y0), (w, h) = self._origin, self._size
-        # Coarse nodes whose ray hits the board, plus points along the outline.
         q = np.concatenate([rays.node_xy, np.ones(rays.node_xy.shape[:-1] + (1,))], -1) @ B.T
+        depth_w = q[..., 2]  # z_ref / depth along each node's ray
         with np.errstate(divide="ignore", invalid="ignore"):
-            X, Y = q[..., 0] / q[..., 2], q[..., 1] / q[..., 2]
-        hit = (q[..., 2] > 0) & (X >= x0) & (X <= x0 + w) & (Y >= y0) & (Y <= y0 + h)
+            X, Y = q[..., 0] / depth_w, q[..., 1] / depth_w
+            hit = (depth_w > 0) & (X >= x0) & (X <= x0 + w) & (Y >= y0) & (Y <= y0 + h)
+            rough = ~(depth_w > 0)
+            for axis in (0, 1):
+                a, b = np.moveaxis(depth_w, axis, 0)[1:], np.moveaxis(depth_w, axis, 0)[:-1]
+                steep = ~(np.abs(a - b) <= _MAX_DEPTH_SLOPE * _CELL * np.minimum(a, b))
+                np.moveaxis(rough, axis, 0)[1:] |= steep
+                np.moveaxis(rough, axis, 0)[:-1] |= steep
         s = np.linspace(0.0, 1.0, _OUTLINE_POINTS, endpoint=False)[:, None]
         c = self._outline_mm()
         edge = np.concatenate([c[i] + s * (c[(i + 1) % 4] - c[i]) for i in range(4)])
@@ -255,40 +273,26 @@ class AnalyticRenderer:
         exy = pc[ahead, :2] / pc[ahead, 2:]
         exy = exy[np.linalg.norm(exy, axis=1) < rays.fold_radius]
         euv = cam.normalized_to_pixels(exy)
-        H, W = cam.height, cam.width
         on_img = ((euv[:, 0] > -_CELL) & (euv[:, 0] < W + _CELL)
                   & (euv[:, 1] > -_CELL) & (euv[:, 1] < H + _CELL))
         exy, euv = exy[on_img], euv[on_img]
 
-        # Cells: node (a, b) is the top-left corner of cell (a, b); mark cells touched, dilate.
-        nc = (-(-H // _CELL), -(-W // _CELL))
-        marked = np.zeros(nc, dtype=np.uint8)
-        hit_cells = hit[:nc[0] + 1, :nc[1] + 1]
-        for da in (0, 1):  # a node belongs to the (up to) four cells around it
-            for db in (0, 1):
-                sub = hit_cells[da:da + nc[0], db:db + nc[1]]
-                marked[:sub.shape[0], :sub.shape[1]] |= sub
-        cells = np.clip(np.floor(euv / _CELL).astype(int), 0, [nc[1] - 1, nc[0] - 1])
-        marked[cells[:, 1], cells[:, 0]] = 1
-        if not marked.any():
-            return [], 0.0, False
-        marked = cv2.dilate(marked, np.ones((3, 3), np.uint8))
-        # Nodes of the marked cells (node (a, b) is a corner of cells a-1..a, b-1..b) and one
-        # more ring, for the strips' margin pixels.
-        near = np.zeros(hit.shape, np.uint8)
-        rows, cols = min(near.shape[0], nc[0]), min(near.shape[1], nc[1])
-        near[:rows, :cols] = marked[:rows, :cols]
-        near = cv2.dilate(near, np.ones((4, 4), np.uint8), anchor=(2, 2))
-        horizon_near = bool(np.any(~(q[..., 2] > 0) & (near > 0)))
+        n_cells = (-(-H // _CELL), -(-W // _CELL))
+        board = _cells_touching(hit, n_cells)
+        cells = np.clip(np.floor(euv / _CELL).astype(int), 0, [n_cells[1] - 1, n_cells[0] - 1])
+        board[cells[:, 1], cells[:, 0]] = 1
+        if not board.any():
+            return [], 0.0
+        board = cv2.dilate(board, np.ones((3, 3), np.uint8))
+        # One more ring of cells for the margin pixels the interpolation reads.
+        rough = cv2.dilate(_cells_touching(rough, n_cells), np.ones((3, 3), np.uint8))
         strips = []
-        for a in np.flatnonzero(marked.any(axis=1)):
-            cols = np.flatnonzero(marked[a])
-            strips.append((a * _CELL, min((a + 1) * _CELL, H),
-                           cols[0] * _CELL, min((cols[-1] + 1) * _CELL, W)))
-
+        for a in np.flatnonzero(board.any(axis=1)):
+            b0, b1 = np.flatnonzero(board[a])[[0, -1]]
+            strips.append((a * _CELL, min((a + 1) * _CELL, H), b0 * _CELL,
+                           min((b1 + 1) * _CELL, W), bool(rough[a, b0:b1 + 1].any())))
         # The footprint varies smoothly: a sparse subset of the outline points is enough.
-        footprint = self._footprint(np.concatenate([rays.node_xy[hit], exy[::16]]), B)
-        return strips, footprint, horizon_near
+        return strips, self._footprint(np.concatenate([rays.node_xy[hit], exy[::16]]), B)
 
     def _footprint(self, xy: np.ndarray, B: np.ndarray) -> float:
         """Largest pixel footprint (mm per px) at normalized points xy (N, 2) on the board."""
@@ -397,6 +401,16 @@ class AnalyticRenderer:
         return cv2.convertScaleAbs(canvas, alpha=1 / 256)
 
 
+def _cells_touching(nodes: np.ndarray, n_cells: tuple[int, int]) -> np.ndarray:
+    """(rows, cols) uint8 cells with a flagged corner; node (a, b) is cell (a, b)'s top-left."""
+    cells = np.zeros(n_cells, dtype=np.uint8)
+    for da in (0, 1):
+        for db in (0, 1):
+            sub = nodes[da:da + n_cells[0], db:db + n_cells[1]]
+            cells[:sub.shape[0], :sub.shape[1]] |= sub
+    return cells
+
+
 def _inv2(J: np.ndarray) -> np.ndarray:
     """Inverses of 2x2 matrices (N, 2, 2)."""
     det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
@@ -404,19 +418,20 @@ def _inv2(J: np.ndarray) -> np.ndarray:
     return inv.reshape(-1, 2, 2)
 
 
-def _sample_texels(xy: np.ndarray, M: np.ndarray, s: int, clip_behind: bool) -> np.ndarray:
+def _sample_texels(xy: np.ndarray, M: np.ndarray, s: int, exact: bool) -> np.ndarray:
     """Texel coordinates (s h, s w, 2) float32 of the s x s samples of h x w pixels.
 
     ``xy`` (h + 2, w + 2, 2): normalized coordinates of the pixels and a one-pixel margin;
     ``M`` (3, 3): normalized -> texel homography. cv2.resize's half-pixel convention puts sample
     j of the upsampled grid at pixel (j + 0.5) / s - 0.5, exactly the sample offsets, so
     interpolating and cropping the margin gives the samples. Normally the smooth texel map is
-    interpolated; when the board crosses the camera plane the homography is applied per sample
-    instead, so that samples whose ray meets the plane behind the camera can be cut out exactly.
+    interpolated (one homography per pixel); ``exact`` interpolates the rays (smooth everywhere)
+    and applies the homography per sample, cutting out samples whose ray meets the plane
+    behind the camera.
     """
     h, w = xy.shape[0] - 2, xy.shape[1] - 2
     size = (s * (w + 2), s * (h + 2))
-    if not clip_behind:
+    if not exact:
         up = cv2.resize(cv2.perspectiveTransform(xy, M), size, interpolation=cv2.INTER_LINEAR)
         return up[s:-s, s:-s]
     up = cv2.resize(xy, size, interpolation=cv2.INTER_LINEAR)[s:-s, s:-s]

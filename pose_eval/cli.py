@@ -1,0 +1,258 @@
+"""`pose-eval`: what a calibration method costs in 3D human pose (MPJPE), against exact truth.
+
+A body moves in front of the rig (pose_eval.scene); its joints are detected through the TRUE
+cameras (pose_eval.observe), triangulated through each method's ESTIMATED cameras
+(pose_eval.reconstruct), optionally fitted by SMPL (pose_eval.fit), and compared with the exact
+joints (pose_eval.metrics). The ``gt`` column triangulates the same detections through the true
+cameras: the error the keypoints alone leave. Every trial draws new keypoint noise; with a run of
+several trial seeds, trial i also uses the calibrations of run trial i mod (number of run trials).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+
+from stereo_bench.calibrate import available_methods
+from stereo_bench.config import ConfigError, load_rig
+from stereo_bench.pipeline import Trial, load_run
+
+from .body import load_body_model
+from .fit import fit_smpl
+from .metrics import pose_metrics
+from .motion import MOTIONS
+from .observe import DetectorModel, observe, read_openpose, scene_occlusion
+from .reconstruct import triangulate_joints
+from .report import STAGES, aggregate, headline_stage, markdown, plot_mpjpe, plot_skeleton
+from .scene import in_true_world, make_scene, rig_axes, run_description
+
+console = Console(stderr=True)
+CALIB_CHOICES = ("gt", *available_methods(), "all")
+NOISE_PX = 1.0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="pose-eval",
+        description="Measure how much a calibration method changes a reconstructed 3D human pose "
+                    "(MPJPE), with the exact pose known: keypoints seen through the true cameras "
+                    "are triangulated through the method's estimated cameras. The gt column "
+                    "(true cameras) is always reported beside the chosen method.")
+    p.add_argument("--calib", required=True, choices=CALIB_CHOICES,
+                   help="calibration method whose estimated rig triangulates; 'gt' the true "
+                        "cameras only; 'all' every method in the run plus gt")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--run", metavar="RUN_DIR",
+                     help="a `stereo-bench RIG.yaml --out RUN_DIR` run: true cameras and every "
+                          "method's estimated rig per trial seed")
+    src.add_argument("--rig", metavar="RIG.yaml",
+                     help="a rig file: the true cameras only (then only --calib gt)")
+    p.add_argument("--motion", default="walk_circle", choices=sorted(MOTIONS),
+                   help="procedural body motion (default: %(default)s)")
+    p.add_argument("--frames", type=int, default=60, help="frames at 30 fps (default: %(default)s)")
+    p.add_argument("--noise-px", type=float,
+                   help=f"Gaussian keypoint noise per coordinate, px (default: {NOISE_PX})")
+    p.add_argument("--outlier-rate", type=float,
+                   help="fraction of detections moved to a random point within 50 px (default: 0)")
+    p.add_argument("--miss-rate", type=float, help="fraction of detections missed (default: 0)")
+    p.add_argument("--no-occlusion", action="store_true",
+                   help="do not mark joints hidden by the body (confidence 0.3, 3x noise)")
+    p.add_argument("--keypoints", metavar="DIR",
+                   help="use a detector's OpenPose-style JSON files instead of synthetic "
+                        "keypoints: DIR/<camera>/<frame:06d>_keypoints.json, SMPL's 24 joints")
+    p.add_argument("--robust", action="store_true",
+                   help="reject outlier views while triangulating (needs 3+ cameras)")
+    p.add_argument("--fit-smpl", action="store_true",
+                   help="fit SMPL to the triangulated joints (as EasyMocap does) and report both")
+    p.add_argument("--trials", type=int,
+                   help="noise trials (default: the run's trial count, or 1)")
+    p.add_argument("--seed", type=int, default=0, help="base seed of the keypoint noise")
+    p.add_argument("--distance-mm", type=float,
+                   help="body distance from the rig (default: the least that keeps it in view)")
+    p.add_argument("--model-path", help="an SMPL model file or folder (default: the shipped "
+                                        "open stand-in body)")
+    p.add_argument("--out", help="output directory (default: out/<rig name>/pose_eval)")
+    return p
+
+
+def _inputs(args) -> tuple[str, str, list[Trial]]:
+    """(rig name, environment, run trials) from --run or --rig."""
+    if args.run:
+        name, env = run_description(args.run)
+        return name, env, load_run(args.run)
+    cfg = load_rig(args.rig)
+    return cfg.name, cfg.environment.kind, [Trial(cfg.seed, cfg.cameras_true(), {})]
+
+
+def _methods(args, trials: list[Trial]) -> list[str]:
+    if args.calib == "gt":
+        return ["gt"]
+    if not args.run:
+        raise ValueError(f"--calib {args.calib} needs the method's calibrated rig: run "
+                         f"`stereo-bench {args.rig} --out RUN` first and pass --run RUN "
+                         f"(--rig alone gives the true cameras, i.e. --calib gt)")
+    if args.calib == "all":
+        found = {m for t in trials for m in t.rigs}
+        rank = {m: i for i, m in enumerate(available_methods())}
+        return ["gt"] + sorted(found, key=lambda m: (rank.get(m, len(rank)), m))
+    for t in trials:
+        if args.calib not in t.rigs:
+            raise FileNotFoundError(
+                f"{Path(args.run) / 'trials' / f'seed_{t.seed}' / 'rig' / f'{args.calib}.json'}: "
+                f"no rig of method {args.calib!r} in this run (methods found: "
+                f"{sorted(t.rigs) or 'none'})")
+    return ["gt", args.calib]
+
+
+def _finite(x):
+    """JSON without NaN: NaN and inf become null."""
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_finite(v) for v in x]
+    return None if isinstance(x, float) and not math.isfinite(x) else x
+
+
+def _evaluate_method(cameras, keypoints, scene, args, model) -> tuple[dict, np.ndarray]:
+    """One method in one trial -> (its entry of pose metrics per stage, the final joints)."""
+    joints, dropped = triangulate_joints(cameras, keypoints, args.robust)
+    entry = {"triangulated": pose_metrics(joints, scene.joints), "dropped_detections": dropped}
+    if args.fit_smpl:
+        # A joint counts as much as its keypoints were trusted (occluded views: 0.3).
+        fit = fit_smpl(joints, weights=keypoints.confidence.mean(axis=0), model=model)
+        entry["fitted"] = pose_metrics(fit.joints, scene.joints)
+        entry["fit"] = {"rms_mm": fit.rms_mm, "iterations": fit.iterations}
+        joints = fit.joints
+    return entry, joints
+
+
+def _add_costs(entries: dict) -> None:
+    """The cost of each calibration: its MPJPE minus gt's on the same keypoints, per stage."""
+    for stage, _ in STAGES:
+        base = entries["gt"].get(stage)
+        for e in entries.values():
+            if base is not None and stage in e:
+                e[stage]["excess_mpjpe_mm"] = e[stage]["mpjpe_mm"] - base["mpjpe_mm"]
+
+
+def _display(truth, *joints):
+    """Joints (24, 3) in the rig's (right, depth, up) axes, for the skeleton plot."""
+    centre, axis, up = rig_axes(truth)
+    basis = np.stack([np.cross(axis, up), axis, up])
+    return tuple((j - centre) @ basis.T for j in joints)
+
+
+def evaluate(args) -> tuple[dict, dict]:
+    """Run every trial -> (results, {method: (truth, estimate) of trial 0's middle frame (24, 3)
+    in the rig's (right, depth, up) axes, for the skeleton plot})."""
+    if args.frames < 1 or (args.trials is not None and args.trials < 1):
+        raise ValueError("--frames and --trials: expected at least 1")
+    noise = (args.noise_px, args.outlier_rate, args.miss_rate)
+    if args.keypoints and any(v is not None for v in noise):
+        raise ValueError("--noise-px, --outlier-rate and --miss-rate shape synthetic keypoints; "
+                         "they do not apply with --keypoints")
+    rig, env, run_trials = _inputs(args)
+    if len(run_trials[0].truth) < 2:
+        raise ValueError(f"{args.run or args.rig}: {len(run_trials[0].truth)} camera; "
+                         f"triangulating a pose needs at least two")
+    methods = _methods(args, run_trials)
+    detector = DetectorModel(*(d if v is None else v for v, d in zip(noise, (NOISE_PX, 0.0, 0.0))),
+                             occlusion=not args.no_occlusion)
+    n_trials = args.trials or len(run_trials)
+    model = load_body_model(args.model_path)
+    scenes = {}  # the true cameras of every run trial are normally the same: one scene
+    per_method = {m: [] for m in methods}
+    raw, examples = [], {}
+    detections: dict[str, int] = {}
+    for i in range(n_trials):
+        run_trial = run_trials[i % len(run_trials)]
+        truth = run_trial.truth
+        key = json.dumps([c.to_dict() for c in truth])
+        if key not in scenes:
+            scene = make_scene(truth, args.motion, args.frames, model=model,
+                               distance_mm=args.distance_mm)
+            occluded = scene_occlusion(truth, scene) if detector.occlusion else None
+            scenes[key] = scene, occluded
+        scene, occluded = scenes[key]
+        if args.keypoints:
+            keypoints = read_openpose(args.keypoints, truth, args.frames)
+        else:
+            keypoints = observe(truth, scene, detector, np.random.default_rng([args.seed, i]),
+                                occluded)
+        for k, v in keypoints.counts().items():
+            detections[k] = detections.get(k, 0) + v
+        entries = {}
+        for m in methods:
+            rig_m = truth if m == "gt" else run_trial.rigs[m]
+            if isinstance(rig_m, str):
+                entries[m] = {"error": f"calibration failed in run trial seed {run_trial.seed}: "
+                                       f"{rig_m}"}
+                continue
+            try:
+                cameras = truth if m == "gt" else in_true_world(rig_m, truth)
+                entries[m], joints = _evaluate_method(cameras, keypoints, scene, args, model)
+            except ValueError as e:  # one method's degenerate estimate must not stop the others
+                entries[m] = {"error": f"run trial seed {run_trial.seed}: {e}"}
+                continue
+            if m not in examples:
+                examples[m] = _display(truth, scene.joints[args.frames // 2],
+                                       joints[args.frames // 2])
+        _add_costs(entries)
+        for m in methods:
+            per_method[m].append(entries[m])
+        raw.append({"trial": i, "run_seed": run_trial.seed, "noise_seed": [args.seed, i],
+                    "methods": entries})
+        shown = "fitted" if args.fit_smpl else "triangulated"
+        console.print(f"trial {i + 1}/{n_trials}, MPJPE ({dict(STAGES)[shown]}): " + ", ".join(
+            f"{m} {e[shown]['mpjpe_mm']:.3f} mm" if "error" not in e else f"{m} failed"
+            for m, e in entries.items()))
+    first_scene = next(iter(scenes.values()))[0]
+    settings = {
+        "calib": args.calib, "motion": args.motion, "frames": args.frames, "trials": n_trials,
+        "distance_mm": first_scene.distance_mm, "robust": args.robust, "fit_smpl": args.fit_smpl,
+        "model_path": args.model_path, "source": args.run or args.rig, "seed": args.seed,
+        "keypoints": (f"OpenPose files from {args.keypoints}" if args.keypoints else
+                      f"synthetic, noise {detector.noise_px} px, outliers "
+                      f"{detector.outlier_rate:.0%}, misses {detector.miss_rate:.0%}, occlusion "
+                      f"{'on' if detector.occlusion else 'off'}"),
+    }
+    results = {"rig": rig, "environment": env, "settings": settings, "detections": detections,
+               "methods": {m: aggregate(per_method[m]) for m in methods}, "trials": raw}
+    return results, examples
+
+
+def write_outputs(results: dict, examples: dict, out: Path) -> None:
+    """results.json, report.md, mpjpe.png and skeleton.png (the chosen method, trial 0)."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(_finite(results), indent=2))
+    (out / "report.md").write_text(markdown(results))
+    plot_mpjpe(results, out / "mpjpe.png")
+    shown = next((m for m in examples if m != "gt"), "gt")
+    if shown in examples:
+        stage = dict(STAGES)[headline_stage(results)]
+        plot_skeleton(*examples[shown], out / "skeleton.png",
+                      f"{shown} ({stage}), frame {results['settings']['frames'] // 2}")
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        results, examples = evaluate(args)
+        out = Path(args.out or Path("out") / results["rig"] / "pose_eval")
+        write_outputs(results, examples, out)
+    except (ConfigError, FileNotFoundError, ValueError) as e:
+        console.print(f"[red]error:[/red] {e}")
+        return 2
+    console.print(markdown(results), markup=False, soft_wrap=True, highlight=False)
+    console.print(f"wrote {out}/results.json, report.md, mpjpe.png, skeleton.png")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,147 @@
+"""pose-eval's report: mean ± std over trials, tables in the layout of the paper's Table 5, plots.
+
+Table 5 has one row per rig and environment and one column per calibration method; here every
+table also carries the ``gt`` column, the same keypoints triangulated through the TRUE cameras:
+the floor that keypoint noise alone leaves, against which a method's cost is read.
+"""
+
+from __future__ import annotations
+
+import math
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402 (after choosing the headless backend)
+import numpy as np  # noqa: E402
+
+from stereo_bench.report import summarize  # noqa: E402
+
+from .motion import JOINT_NAMES, PARENTS  # noqa: E402
+
+MEASURES = [("mpjpe_mm", "MPJPE (standard) mm"),
+            ("excess_mpjpe_mm", "Cost of the calibration: MPJPE minus gt's, same keypoints, mm"),
+            ("paper_mpjpe_mm", "MPJPE (paper's formula) mm"),
+            ("pa_mpjpe_mm", "PA-MPJPE mm")]
+STAGES = [("triangulated", "triangulated"), ("fitted", "SMPL fit")]
+
+
+def aggregate(trials: list[dict]) -> dict:
+    """Summaries of one method over its trials (each {"triangulated": pose_metrics, ["fitted":
+    pose_metrics]} or {"error": message}).
+
+    Returns {stage: {measure: summary, "per_joint_mm": {joint: summary}, "missing_joints":
+    total}, "failures": [messages], "trials": n}.
+    """
+    done = [t for t in trials if "error" not in t]
+    agg = {"trials": len(trials), "failures": [t["error"] for t in trials if "error" in t]}
+    for stage, _ in STAGES:
+        entries = [t[stage] for t in done if stage in t]
+        if not entries and stage != "triangulated":
+            continue
+        agg[stage] = {key: summarize([e.get(key, math.nan) for e in entries])
+                      for key, _ in MEASURES}
+        agg[stage]["per_joint_mm"] = {
+            j: summarize([e["per_joint_mm"][j] for e in entries]) for j in JOINT_NAMES}
+        agg[stage]["missing_joints"] = sum(e["missing_joints"] for e in entries)
+        agg[stage]["total_joints"] = sum(e["total_joints"] for e in entries)
+    return agg
+
+
+def fmt(s: dict) -> str:
+    if s["n"] == 0:
+        return "failed"
+    return f"{s['mean']:.3f}" if s["n"] == 1 else f"{s['mean']:.3f} ± {s['std']:.3f}"
+
+
+def headline_stage(results: dict) -> str:
+    return "fitted" if results["settings"]["fit_smpl"] else "triangulated"
+
+
+def markdown(results: dict) -> str:
+    """The report: settings, Table-5 tables per measure, per-joint errors, counts, failures."""
+    s, methods = results["settings"], results["methods"]
+    names = list(methods)
+    rig, env = results["rig"], results["environment"]
+    stages = [(k, label) for k, label in STAGES if any(k in m for m in methods.values())]
+    lines = [
+        f"# pose-eval: {rig} ({env})", "",
+        f"Motion `{s['motion']}`, {s['frames']} frames, body at {s['distance_mm']:.0f} mm from the "
+        f"rig; keypoints: {s['keypoints']}; triangulation: "
+        f"{'robust (outlier views rejected)' if s['robust'] else 'weighted DLT + ML refinement'}"
+        f"{'; then an SMPL fit' if s['fit_smpl'] else ''}. "
+        f"Mean ± std over {s['trials']} trial(s).",
+        "",
+        "`gt` triangulates the same keypoints through the true cameras: the floor that the "
+        "keypoints alone leave. Standard MPJPE averages the joint errors; the paper's formula "
+        "takes per frame the root of the SUM of squared joint errors (about sqrt(24) = 4.9x "
+        "larger). PA-MPJPE aligns each frame by a similarity transform first. The cost of a "
+        "calibration is its MPJPE minus gt's in the same trial (same keypoints), so keypoint "
+        "noise common to both cancels.", ""]
+    for key, title in MEASURES:
+        lines += [f"## {title}", "",
+                  "| Cameras | Environment | Stage | " + " | ".join(names) + " |",
+                  "|---|---|---|" + "---|" * len(names)]
+        for stage, label in stages:
+            cells = [fmt(m[stage][key]) if stage in m else "failed" for m in methods.values()]
+            lines.append(f"| {rig} | {env} | {label} | " + " | ".join(cells) + " |")
+        lines.append("")
+    stage = headline_stage(results)
+    lines += [f"## Per joint ({dict(STAGES)[stage]}), mean error mm", "",
+              "| joint | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+    for j in JOINT_NAMES:
+        cells = [fmt(m[stage]["per_joint_mm"][j]) if stage in m else "failed"
+                 for m in methods.values()]
+        lines.append(f"| {j} | " + " | ".join(cells) + " |")
+    lines += ["", "## Counts", "",
+              "| method | missing joints | of |", "|---|---|---|"]
+    for name, m in methods.items():
+        if stage in m:
+            lines.append(f"| {name} | {m[stage]['missing_joints']} | {m[stage]['total_joints']} |")
+    d = results["detections"]
+    lines += ["", "Keypoint views over all trials: " + ", ".join(f"{k} {v}" for k, v in d.items())
+              + "."]
+    failures = [f"- {name}: {msg}" for name, m in methods.items() for msg in m["failures"]]
+    if failures:
+        lines += ["", "## Failures", ""] + failures
+    return "\n".join(lines) + "\n"
+
+
+def plot_mpjpe(results: dict, path) -> None:
+    """Bar chart of the headline MPJPE per method, with ± std error bars."""
+    stage = headline_stage(results)
+    names = list(results["methods"])
+    summaries = [m.get(stage, {}).get("mpjpe_mm", {"mean": math.nan, "std": math.nan})
+                 for m in results["methods"].values()]
+    fig, ax = plt.subplots(figsize=(1.2 * len(names) + 2, 3.5))
+    x = np.arange(len(names))
+    ax.bar(x, [s["mean"] for s in summaries], yerr=[s["std"] for s in summaries], capsize=4,
+           color=["0.6" if n == "gt" else "C0" for n in names])
+    ax.set_xticks(x, names)
+    ax.set_ylabel(f"MPJPE mm ({dict(STAGES)[stage]})")
+    ax.set_title(f"{results['rig']} ({results['environment']})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_skeleton(truth: np.ndarray, estimate: np.ndarray, path, title: str) -> None:
+    """Truth and estimate of one frame (24, 3) mm, drawn along SMPL's kinematic tree.
+
+    Coordinates are taken as (right, depth, up), e.g. the rig's axes (pose_eval.scene.rig_axes).
+    """
+    fig = plt.figure(figsize=(5, 5))
+    ax = fig.add_subplot(projection="3d")
+    for joints, style, label in ((truth, "k-", "truth"), (estimate, "r--", "estimate")):
+        for j, p in enumerate(PARENTS[1:], start=1):
+            seg = joints[[p, j]]
+            ax.plot(*seg.T, style, lw=1.5, label=label if j == 1 else None)
+    centre, half = truth.mean(0), np.ptp(truth, axis=0).max() / 2 + 50
+    ax.set(xlim=(centre[0] - half, centre[0] + half), ylim=(centre[1] - half, centre[1] + half),
+           zlim=(centre[2] - half, centre[2] + half), xlabel="right mm", ylabel="depth mm",
+           zlabel="up mm", title=title)
+    ax.set_box_aspect((1, 1, 1))  # equal scales: bones keep their lengths on the page
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
