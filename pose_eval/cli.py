@@ -37,6 +37,9 @@ CALIB_CHOICES = ("gt", *available_methods(), "all")
 NOISE_PX = 1.0
 
 
+DEFAULT_RUN = "out/quickstart"
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="pose-eval",
@@ -47,10 +50,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calib", required=True, choices=CALIB_CHOICES,
                    help="calibration method whose estimated rig triangulates; 'gt' the true "
                         "cameras only; 'all' every method in the run plus gt")
-    src = p.add_mutually_exclusive_group(required=True)
+    src = p.add_mutually_exclusive_group()
     src.add_argument("--run", metavar="RUN_DIR",
                      help="a `stereo-bench RIG.yaml --out RUN_DIR` run: true cameras and every "
-                          "method's estimated rig per trial seed")
+                          "method's estimated rig per trial seed (default, without --rig: "
+                          f"{DEFAULT_RUN}, written by `make demo`)")
     src.add_argument("--rig", metavar="RIG.yaml",
                      help="a rig file: the true cameras only (then only --calib gt)")
     p.add_argument("--motion", default="walk_circle", choices=sorted(MOTIONS),
@@ -242,6 +246,8 @@ def write_outputs(results: dict, examples: dict, out: Path) -> None:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    if not args.run and not args.rig:
+        args.run = DEFAULT_RUN
     try:
         results, examples = evaluate(args)
         out = Path(args.out or Path("out") / results["rig"] / "pose_eval")

@@ -119,6 +119,8 @@ def cmd_sweep(args) -> int:
 
 
 def _trial_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--methods", default="zhang,tsai,bouguet,opencv",
+                   help="comma-separated methods (default: %(default)s; also opencv-rational)")
     p.add_argument("--trials", type=int, default=1,
                    help="re-render with N seeds (seed, seed+1, ...) and report mean ± std")
     p.add_argument("--workers", type=int, default=1,
@@ -144,8 +146,6 @@ def build_parser() -> argparse.ArgumentParser:
                                    "calibrate every camera with every method, and score each "
                                    "estimate against the ground truth.")
     c.add_argument("dataset", help="dataset directory written by `stereo-bench render`")
-    c.add_argument("--methods", default="zhang,tsai,bouguet,opencv",
-                   help="comma-separated methods (default: %(default)s; also opencv-rational)")
     c.add_argument("--out", help="output directory (default: DATASET/calibration)")
     _trial_options(c)
     c.set_defaults(func=cmd_calibrate)
@@ -157,8 +157,6 @@ def build_parser() -> argparse.ArgumentParser:
                                    "are complete are reused.")
     u.add_argument("rig", help="rig YAML file (see configs/)")
     u.add_argument("--out", help="run directory (default: out/<rig name>)")
-    u.add_argument("--methods", default="zhang,tsai,bouguet,opencv",
-                   help="comma-separated methods (default: %(default)s; also opencv-rational)")
     _trial_options(u)
     u.set_defaults(func=cmd_run)
 
