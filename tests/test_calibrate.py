@@ -146,6 +146,11 @@ def test_opencv_rational_fits_the_projection_despite_unidentifiable_coefficients
     assert rel.max() < 1e-6
     assert result.log["rms_px"] < 1e-4  # float32 inputs
     assert result.log["opencv_version"] == cv2.__version__
+    # OpenCV does not report it; the log does: k1..k6 are (near) unidentifiable from planes.
+    rank = result.log["rank"]
+    print(rank)
+    assert rank["n_free"] == 12 and (rank["rank"] < 12 or rank["condition"] > 1e8)
+    assert get_calibrator("opencv").calibrate(obs).log["rank"]["rank"] == 9
 
 
 def test_refine_reports_rational_rank_deficiency():

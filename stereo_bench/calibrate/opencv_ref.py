@@ -17,12 +17,18 @@ import numpy as np
 
 from ..camera import Camera
 from .base import CalibrationResult, Observations
+from .refine import OpenCVModel, free_mask, intrinsic_information, rank_info
+
+# The parameters cv2.calibrateCamera estimates (it never estimates skew in the pinhole model).
+_FREE = {False: ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"),
+         True: ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")}
 
 
 class OpenCVCalibrator:
     def __init__(self, rational: bool = False, flags: int = 0):
         """``flags`` are OR-ed into calibrateCamera's (e.g. CALIB_FIX_K3)."""
         self.name = "opencv-rational" if rational else "opencv"
+        self.rational = rational
         self.flags = int(flags) | (cv2.CALIB_RATIONAL_MODEL if rational else 0)
 
     def calibrate(self, obs: Observations) -> CalibrationResult:
@@ -32,8 +38,17 @@ class OpenCVCalibrator:
         rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, obs.image_size, None, None,
                                                          flags=self.flags)
         camera = Camera.from_K(obs.camera_name, *obs.image_size, K, np.ravel(dist)[:8])
+        rvecs = np.array(rvecs, dtype=np.float64).reshape(-1, 3)
+        tvecs = np.array(tvecs, dtype=np.float64).reshape(-1, 3)
+        elapsed = time.perf_counter() - t0
+        # OpenCV does not say when its problem is rank deficient (the rational model from planar
+        # views, TRAPS.md): check the information of its free intrinsics at its solution.
+        model = OpenCVModel()
+        free = free_mask(model.param_names, _FREE[self.rational])
+        info = intrinsic_information(model, model.params_of(camera), free, obs.object_points,
+                                     rvecs, tvecs)
         log = {"method": self.name, "opencv_version": cv2.__version__, "flags": self.flags,
-               "rms_px": float(rms), "time_s": time.perf_counter() - t0,
+               "rms_px": float(rms), "time_s": elapsed,
+               "rank": rank_info(info, list(_FREE[self.rational])),
                "notes": "cv2.calibrateCamera on float32 points"}
-        return CalibrationResult(camera, np.array(rvecs, dtype=np.float64).reshape(-1, 3),
-                                 np.array(tvecs, dtype=np.float64).reshape(-1, 3), log)
+        return CalibrationResult(camera, rvecs, tvecs, log)
