@@ -18,6 +18,7 @@ venv: $(BIN)/stereo-bench
 
 demo: venv
 	$(BIN)/stereo-bench configs/quickstart.yaml --out out/quickstart
+	$(BIN)/pose-eval --calib all --run out/quickstart --out out/quickstart/pose_eval
 
 test: venv
 	$(BIN)/python -m pytest -q
