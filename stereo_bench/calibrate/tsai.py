@@ -265,7 +265,7 @@ def tsai_to_opencv(params: np.ndarray, width: int, height: int, name: str = "cam
                    grid: int = 161, tolerance_px: float = 0.01) -> tuple[Camera, ConversionReport]:
     """Camera with fx = sx f, fy = f and OpenCV radial coefficients fitted to Tsai's distortion.
 
-    Every pixel of a grid x grid lattice over the image (borders and corners included) is
+    Every pixel of a grid x grid lattice over the image and a 20 % margin around it is
     undistorted exactly by eq. (3); the radial coefficients minimise, linearly, the pixel
     distance between OpenCV's forward projection of that undistorted point and the pixel
     itself. k1, k2, k3 first; when they leave more than ``tolerance_px`` (strong lenses: about
@@ -275,17 +275,30 @@ def tsai_to_opencv(params: np.ndarray, width: int, height: int, name: str = "cam
     model's non-identifiability from planar views (TRAPS.md) does not apply.
     """
     f, sx, cx, cy, k = np.asarray(params, dtype=np.float64)
-    u, v = np.meshgrid(np.linspace(0, width - 1, grid), np.linspace(0, height - 1, grid))
-    pd = np.stack([(u.ravel() - cx) / sx, v.ravel() - cy], 1)
-    rd2 = np.sum(pd * pd, axis=1)
-    if k < 0 and rd2.max() * -3.0 * k >= 1.0:
+
+    def samples(lo: float, hi: float):
+        """Tsai's exact undistorted normalized points and radial factor on a pixel lattice."""
+        u, v = np.meshgrid(np.linspace(lo, hi, grid) * (width - 1),
+                           np.linspace(lo, hi, grid) * (height - 1))
+        pd = np.stack([(u.ravel() - cx) / sx, v.ravel() - cy], 1)
+        rd2 = np.sum(pd * pd, axis=1)
+        if k < 0:  # beyond the fold Tsai's map has no inverse
+            pd, rd2 = pd[rd2 * -3.0 * k < 0.95], rd2[rd2 * -3.0 * k < 0.95]
+        xy = pd * (1.0 + k * rd2)[:, None] / f
+        return xy, np.sum(xy * xy, axis=1), 1.0 / (1.0 + k * rd2)
+
+    corner2 = max(((x - cx) / sx) ** 2 + (y - cy) ** 2
+                  for x in (0, width - 1) for y in (0, height - 1))
+    if k < 0 and corner2 * -3.0 * k >= 1.0:
         raise TsaiUnreachableError(
             f"kappa1 = {k:.6g} folds Tsai's distortion inside the {width}x{height} image "
             f"(at distorted radius {1 / np.sqrt(-3 * k):.6g} px); no OpenCV equivalent")
-    xy = pd * (1.0 + k * rd2)[:, None] / f            # undistorted normalized
-    r2 = np.sum(xy * xy, axis=1)
-    rho = 1.0 / (1.0 + k * rd2)                        # exact OpenCV radial factor wanted
     fxy = np.array([sx * f, f])
+    image = samples(0.0, 1.0)
+    # The fit also covers 20 % beyond each border: another camera's rays (the true one's, in the
+    # projection-difference metric) land slightly outside this image, and a rational fit must
+    # not extrapolate there (it can have a pole just outside the fitted range).
+    xy, r2, rho = (np.concatenate(p) for p in zip(image, samples(-0.2, 1.2)))
     # Pixel residual of OpenCV's map: fxy * xy * (radial(r2) - rho).
     a = (fxy * xy).T.reshape(-1)                      # u rows, then v rows
     r2a, rhoa = np.concatenate([r2, r2]), np.concatenate([rho, rho])
@@ -297,11 +310,10 @@ def tsai_to_opencv(params: np.ndarray, width: int, height: int, name: str = "cam
 
     kk = fit(a[:, None] * powers)
     dist = np.array([kk[0], kk[1], 0, 0, kk[2], 0, 0, 0])
-    err = _conversion_error(dist, r2, rho, fxy, xy)
-    if err.max() > tolerance_px:
+    if _conversion_error(dist, r2, rho, fxy, xy).max() > tolerance_px:
         kk = fit(a[:, None] * np.hstack([powers, -rhoa[:, None] * powers]))
         dist = np.array([kk[0], kk[1], 0, 0, kk[2], kk[3], kk[4], kk[5]])
-        err = _conversion_error(dist, r2, rho, fxy, xy)
+    err = _conversion_error(dist, image[1], image[2], fxy, image[0])  # reported over the image
     K = k * f * f
     cam = Camera(name, width, height, sx * f, f, cx, cy, 0.0, dist)
     return cam, ConversionReport(float(err.max()), float(np.sqrt(np.mean(err**2))),
