@@ -7,7 +7,6 @@ takes about a minute); its truth is the same homography.
 """
 
 import math
-import time
 from pathlib import Path
 
 import cv2
@@ -194,13 +193,12 @@ def test_large_image_is_searched_downscaled_and_measured_at_full_size(method):
     texel = (pattern.object_points()[:, :2] - pattern.texture_origin_mm) * px_per_mm - 0.5
     truth = cv2.perspectiveTransform(texel.reshape(-1, 1, 2), H).reshape(-1, 2)
     assert truth.min() > 0 and truth[:, 0].max() < 4095 and truth[:, 1].max() < 3071
-    start = time.perf_counter()
+    # Speed (about 1.2 s for sb, 0.1 s for classic, against > 20 s for full-resolution SB) is
+    # printed by benchmarks/detection_accuracy.py, not asserted here.
     detection = detect(image, pattern, method)
-    seconds = time.perf_counter() - start
     assert detection.found
     error = np.linalg.norm(detection.points - truth, axis=1)
     assert error.mean() < 0.02 and error.max() < 0.05, (error.mean(), error.max())  # 0.007, 0.016
-    assert seconds < 8.0  # full-resolution SB takes > 20 s; measured 1.2 s (sb), 0.1 s (classic)
 
 
 # ----------------------------------------------------------------------------- datasets
