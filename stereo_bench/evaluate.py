@@ -25,22 +25,35 @@ from .dataset import Dataset
 from .detect import CameraDetections, detect_dataset, detection_errors
 from .metrics import parameter_errors, parameter_rmse, pose_errors, projection_difference, rpe_rms
 
-MIN_POINTS = 6  # fewer detected corners than this do not constrain a view
+MIN_POINTS = 8  # fewer detected corners than this hardly constrain a view
+MIN_SPREAD = 0.2  # the board points' minor extent relative to their major one
 
 
-def observations(det: CameraDetections, object_points: np.ndarray, camera: Camera) -> Observations:
-    """The found views of one camera, each with its detected (finite) points."""
-    obj, img, ids = [], [], []
+def observations(det: CameraDetections, object_points: np.ndarray,
+                 camera: Camera) -> tuple[Observations, dict[int, str]]:
+    """The found views of one camera, each with its detected (finite) points, and the found
+    views left out with the reason: too few points, or points nearly on a line (a partial
+    ChArUco view of one row), which leave a view's homography, and so every closed-form
+    initialization built on it, undetermined."""
+    obj, img, ids, dropped = [], [], [], {}
     for f in np.flatnonzero(det.found):
         ok = np.isfinite(det.points[f]).all(axis=1)
-        if ok.sum() >= MIN_POINTS:
-            obj.append(object_points[ok])
-            img.append(det.points[f, ok])
-            ids.append(int(f))
+        if ok.sum() < MIN_POINTS:
+            dropped[int(f)] = f"{int(ok.sum())} points, need {MIN_POINTS}"
+            continue
+        sv = np.linalg.svd(object_points[ok, :2] - object_points[ok, :2].mean(0),
+                           compute_uv=False)
+        if sv[1] < MIN_SPREAD * sv[0]:
+            dropped[int(f)] = f"points nearly collinear (spread {sv[1] / sv[0]:.2f})"
+            continue
+        obj.append(object_points[ok])
+        img.append(det.points[f, ok])
+        ids.append(int(f))
     if not ids:
-        raise ValueError(f"camera {camera.name!r}: the board was found in no frame "
-                         f"({len(det.errors)} failures, e.g. {next(iter(det.errors.values()), '')})")
-    return Observations(obj, img, camera.size, ids, camera.name)
+        raise ValueError(f"camera {camera.name!r}: no usable view ({len(det.errors)} frames "
+                         f"not found, e.g. {next(iter(det.errors.values()), '')!r}; "
+                         f"{len(dropped)} found views left out)")
+    return Observations(obj, img, camera.size, ids, camera.name), dropped
 
 
 def load_or_detect(ds: Dataset, out: Path, progress=None) -> list[CameraDetections]:
@@ -119,7 +132,8 @@ def evaluate_dataset(ds: Dataset, methods: list[str], out: Path, progress=None) 
         report["detection"][cam.name] = detection_errors(det, gt.points[c], gt.visible[c])
         truth = cam.with_params(rvec=np.zeros(3), tvec=np.zeros(3))
         try:
-            obs = observations(det, ds.object_points, cam)
+            obs, dropped = observations(det, ds.object_points, cam)
+            report["detection"][cam.name]["views_left_out"] = dropped
         except ValueError as e:
             for m in methods:
                 report["calibration"][m][cam.name] = {"error": str(e)}

@@ -88,3 +88,21 @@ def test_bad_grid_is_an_error(tmp_path, capsys, bad):
     grid.write_text(yaml.safe_dump({"rigs": ["x.yaml"], "patterns": ["checkerboard"], **bad}))
     assert main(["sweep", str(grid)]) == 2
     assert str(grid) in capsys.readouterr().err
+
+
+def test_views_with_too_few_or_collinear_points_are_left_out_and_said():
+    from stereo_bench.camera import Camera
+    from stereo_bench.detect import CameraDetections
+    from stereo_bench.evaluate import observations
+    from stereo_bench.patterns import Checkerboard
+
+    obj = Checkerboard().object_points()  # 8 x 11 corners, row by row
+    pts = np.full((3, len(obj), 2), np.nan)
+    pts[0] = obj[:, :2] * 2 + 100  # a whole board
+    pts[1, :8] = obj[:8, :2] * 2 + 100  # one row of 8 corners: collinear
+    pts[2, :5] = obj[:5, :2] * 2 + 100  # five corners
+    det = CameraDetections("c", "checkerboard", "classic", pts, np.ones(3, bool),
+                           np.arange(len(obj)))
+    obs, dropped = observations(det, obj, Camera("c", 640, 480, 500, 500, 320, 240))
+    assert obs.view_ids == [0]
+    assert "collinear" in dropped[1] and "5 points" in dropped[2]
