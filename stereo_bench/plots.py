@@ -133,7 +133,10 @@ def plot_projection_maps(tdir: Path, ds: Dataset, methods: list[str], folder: Pa
         fig, axes = plt.subplots(1, len(ests), figsize=(3.6 * len(ests), 3.0), squeeze=False)
         for ax, (m, est) in zip(axes[0], ests.items()):
             diff = projection_difference_map(est, truth)
-            im = ax.imshow(diff, extent=(0, cam.width - 1, cam.height - 1, 0), cmap="magma")
+            # Colour scale to the 99th percentile: a few corner pixels where an estimate's model
+            # breaks down (Tsai's fold) would otherwise leave the rest of the map black.
+            im = ax.imshow(diff, extent=(0, cam.width - 1, cam.height - 1, 0), cmap="magma",
+                           vmax=np.percentile(diff, 99))
             ax.set_title(f"{m}: mean {diff.mean():.3g}, max {diff.max():.3g} px", fontsize=8)
             ax.tick_params(labelsize=6)
             fig.colorbar(im, ax=ax, shrink=0.8).ax.tick_params(labelsize=6)
@@ -152,7 +155,9 @@ def plot_run(out: Path, trials: list[dict], agg: dict) -> list[Path]:
     folder.mkdir(parents=True, exist_ok=True)
     first = trials[0]
     tdir = trial_dir(out, first["seed"])
-    ds = Dataset.load(first["dataset"])
+    # The run's own copy, so that a run directory moved elsewhere still plots.
+    own = tdir / "dataset"
+    ds = Dataset.load(own if (own / "manifest.json").is_file() else first["dataset"])
     methods = first["methods"]
     return [plot_metrics(agg, folder / "metrics.png"),
             plot_residuals(tdir, ds, methods, folder / "residuals.png"),
