@@ -148,6 +148,49 @@ class _SearchImage:
 
 
 # ----------------------------------------------------------------------------- local geometry
+def _leave_one_out(object_xy: np.ndarray, points: np.ndarray, radius_mm: float) -> np.ndarray:
+    """(N,) how far each point lies from where its neighbours (within ``radius_mm``, the point
+    itself left out) put it by an affine fit, in board mm; NaN where it cannot be predicted."""
+    out = np.full(len(points), np.nan)
+    seen = np.isfinite(points).all(axis=1)
+    near = np.linalg.norm(object_xy[:, None] - object_xy[None], axis=-1) <= radius_mm
+    for i in np.flatnonzero(seen):
+        nb = np.flatnonzero(near[i] & seen)
+        nb = nb[nb != i]
+        if len(nb) < 3:  # an affine map needs three (a board corner has exactly three)
+            continue
+        X = np.column_stack([object_xy[nb] - object_xy[i], np.ones(len(nb))])
+        sol = np.linalg.lstsq(X, points[nb], rcond=None)[0]  # rows: d/dx, d/dy, value at i
+        out[i] = np.linalg.norm(sol[2] - points[i]) / np.linalg.norm(sol[:2], 2)
+    return out
+
+
+def _drop_grid_outliers(object_xy: np.ndarray, points: np.ndarray, step_mm: float) -> np.ndarray:
+    """Points (N, 2) with corners that break the local grid set to NaN.
+
+    cornerSubPix can converge to a wrong corner in noisy images (5-6 px off, on the wide
+    camera's noisy renders). Predicted from its neighbours, a true corner of any paper rig's
+    trajectory lies within 0.044 step; the worst corner beyond 0.15 step is dropped and the rest
+    re-checked, then dropped corners that fit the remaining grid come back (an outlier can make a
+    good neighbour look worse than itself).
+    """
+    points = points.copy()
+    dropped = {}
+    while True:
+        misfit = _leave_one_out(object_xy, points, 1.5 * step_mm)
+        if not np.any(misfit > 0.15 * step_mm):
+            break
+        worst = int(np.nanargmax(misfit))
+        dropped[worst] = points[worst].copy()
+        points[worst] = np.nan
+    for i, p in dropped.items():
+        trial = points.copy()
+        trial[i] = p
+        if _leave_one_out(object_xy, trial, 1.5 * step_mm)[i] <= 0.15 * step_mm:
+            points = trial
+    return points
+
+
 def _local_affines(object_xy: np.ndarray, points: np.ndarray, radius_mm: float):
     """Board-mm -> px linear maps at each point, fitted to its neighbours within ``radius_mm``.
 
@@ -191,7 +234,9 @@ def _detect_checkerboard(gray, search: _SearchImage, pattern: Checkerboard,
         points = points[::-1]  # OpenCV 5.0's SB starts at the opposite corner (patterns.py)
     if method == "classic" or search.downscaled:  # SB's own subpixel result is kept at full size
         points = _corner_subpix(gray, points, pattern.pattern_size)
-    return Detection(_orient_checkerboard(gray, points, pattern), pattern.ids(), True)
+    points = _orient_checkerboard(gray, points, pattern)
+    return Detection(_drop_grid_outliers(pattern.object_points()[:, :2], points,
+                                         pattern.square_mm), pattern.ids(), True)
 
 
 def _corner_subpix(gray, points: np.ndarray, pattern_size: tuple[int, int]) -> np.ndarray:

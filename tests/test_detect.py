@@ -242,3 +242,22 @@ def test_detection_errors_counts_flips_and_keeps_them_out_of_the_statistics():
     assert e["mean_px"] == pytest.approx(np.hypot(*offset)) and e["max_px"] == pytest.approx(
         np.hypot(*offset))
     assert (e["mean_dx_px"], e["mean_dy_px"]) == pytest.approx(tuple(offset))
+
+
+def test_a_corner_that_breaks_the_local_grid_is_dropped():
+    from stereo_bench.detect import _drop_grid_outliers
+    from stereo_bench.rig import Rig
+
+    rig = Rig.from_config(load_rig(Path(__file__).parent.parent / "configs/paper/wide_mono.yaml"))
+    truth = rig.ground_truth().points[0]  # (F, 88, 2) through the k1 = 0.5 lens
+    obj = Checkerboard().object_points()[:, :2]
+    for f in (0, 60, 126):  # near, middle and far ends of the spring
+        assert np.array_equal(_drop_grid_outliers(obj, truth[f], 15.0), truth[f])
+        step = np.linalg.norm(truth[f, 1] - truth[f, 0])
+        for i in (0, 5, 44):  # a board corner, an edge corner, an inner corner
+            bad = truth[f].copy()
+            # 0.3 step: what cornerSubPix did on noisy wide renders (5-6 px at 14-20 px steps)
+            bad[i] += np.array([0.8, -0.6]) * 0.3 * step
+            kept = _drop_grid_outliers(obj, bad, 15.0)
+            assert np.isnan(kept[i]).all()
+            assert np.isfinite(np.delete(kept, i, axis=0)).all()
