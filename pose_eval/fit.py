@@ -39,6 +39,7 @@ from smplx.lbs import batch_rigid_transform, batch_rodrigues
 from stereo_bench.camera import matrix_to_rodrigues
 
 from .body import MM_PER_M, NUM_JOINTS, load_body_model
+from .metrics import similarity_align
 from .motion import JOINT
 
 TRANSL_UNIT_M = 0.1
@@ -64,15 +65,6 @@ class SmplFit:
     iterations: int
 
 
-def _rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """R, t minimizing |R src + t - dst| over points (N, 3) (Kabsch)."""
-    cs, cd = src.mean(0), dst.mean(0)
-    U, _, Vt = np.linalg.svd((dst - cd).T @ (src - cs))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    R = U @ D @ Vt
-    return R, cd - R @ cs
-
-
 def _initial_pose(rest: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per frame, global_orient (T, 3) and transl (T, 3) m that put the rest torso on the
     target's (frames without 3 torso joints take the nearest frame's).
@@ -90,7 +82,7 @@ def _initial_pose(rest: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.
         g = f if ok[f] else np.flatnonzero(ok)[np.argmin(np.abs(np.flatnonzero(ok) - f))]
         seen = [j for j in TORSO if np.isfinite(target[g, j]).all()]
         while True:
-            R[f], t[f] = _rigid(rest[seen], target[g, seen])
+            _, R[f], t[f] = similarity_align(rest[seen], target[g, seen], scale=False)
             off = np.linalg.norm(rest[seen] @ R[f].T + t[f] - target[g, seen], axis=1)
             if off.max() <= 0.2 or len(seen) == 3:
                 break

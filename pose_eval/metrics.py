@@ -54,14 +54,15 @@ def paper_mpjpe(estimate, truth) -> float:
     return float(per_frame.mean()) if per_frame.size else float("nan")
 
 
-def similarity_align(source: np.ndarray, target: np.ndarray):
-    """s, R, t minimizing sum |s R source + t - target|^2 over points (N, 3) (Umeyama 1991)."""
+def similarity_align(source: np.ndarray, target: np.ndarray, scale: bool = True):
+    """s, R, t minimizing sum |s R source + t - target|^2 over points (N, 3) (Umeyama 1991);
+    ``scale=False`` holds s = 1 (the rigid fit, Kabsch)."""
     ms, mt = source.mean(0), target.mean(0)
     xs, xt = source - ms, target - mt
     U, S, Vt = np.linalg.svd(xt.T @ xs / len(source))
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U) * np.linalg.det(Vt))])
     R = U @ D @ Vt
-    s = np.trace(np.diag(S) @ D) / (xs ** 2).sum(axis=1).mean()
+    s = np.trace(np.diag(S) @ D) / (xs ** 2).sum(axis=1).mean() if scale else 1.0
     return s, R, mt - s * R @ ms
 
 

@@ -103,6 +103,20 @@ def matrix_to_rodrigues(R: np.ndarray) -> np.ndarray:
     return q[..., 1:] * scale[..., None]
 
 
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation closest to M (..., 3, 3) in the Frobenius norm (SVD projection onto SO(3))."""
+    U, _, Vt = np.linalg.svd(M)
+    D = np.ones(U.shape[:-1])
+    D[..., 2] = np.sign(np.linalg.det(U @ Vt))
+    return (U * D[..., None, :]) @ Vt
+
+
+def geodesic_distance(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:
+    """Rotation angle (rad) of Ra^T Rb for rotation matrices (..., 3, 3); through the log map,
+    which stays accurate for tiny angles where the arccos of the trace loses them."""
+    return np.linalg.norm(matrix_to_rodrigues(np.swapaxes(Ra, -1, -2) @ Rb), axis=-1)
+
+
 def rotate_jacobian(rvec: np.ndarray, points: np.ndarray) -> np.ndarray:
     """d(R(rvec) @ p)/d rvec, shape (N, 3, 3), for one rvec (3,) and points (N, 3).
 

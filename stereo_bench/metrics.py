@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
-from .camera import (DIST_NAMES, INTRINSIC_NAMES, Camera, matrix_to_rodrigues, project_points,
+from .camera import (DIST_NAMES, INTRINSIC_NAMES, Camera, geodesic_distance, project_points,
                      project_with_jacobians, rodrigues_to_matrix)
 
 PAPER_PARAMS = ("fx", "fy", "cx", "cy") + DIST_NAMES
@@ -112,8 +112,7 @@ def pose_errors(rvecs, tvecs, true_rvecs, true_tvecs) -> dict:
     """
     R = rodrigues_to_matrix(np.asarray(rvecs, dtype=np.float64))
     R_true = rodrigues_to_matrix(np.asarray(true_rvecs, dtype=np.float64))
-    # The log map stays accurate for tiny angles, where arccos of the trace loses them.
-    rot = np.degrees(np.linalg.norm(matrix_to_rodrigues(R @ np.swapaxes(R_true, -1, -2)), axis=-1))
+    rot = np.degrees(geodesic_distance(R_true, R))
     trans = np.linalg.norm(np.asarray(tvecs, float) - np.asarray(true_tvecs, float), axis=-1)
     return {
         "rotation_deg": rot.tolist(),

@@ -34,8 +34,9 @@ import scipy.sparse
 from scipy.optimize import least_squares
 
 from .calibrate.base import MIN_POINTS_PER_VIEW
-from .camera import (Camera, compose, invert, matrix_to_rodrigues, project_with_jacobians,
-                     rodrigues_to_matrix, rotate_jacobian)
+from .camera import (Camera, compose, geodesic_distance, invert, matrix_to_rodrigues,
+                     nearest_rotation, project_with_jacobians, rodrigues_to_matrix,
+                     rotate_jacobian)
 
 MIN_OUTLIER_DEG = 0.1  # rotation-averaging inlier radius never goes below this
 
@@ -69,19 +70,13 @@ class RigCalibration:
 # Initialization
 # ----------------------------------------------------------------------------------------------
 
-def geodesic_distance(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:
-    """Rotation angle (rad) of Ra^T Rb for rotation matrices (..., 3, 3)."""
-    return np.linalg.norm(matrix_to_rodrigues(np.swapaxes(Ra, -1, -2) @ Rb), axis=-1)
-
-
 def average_rotations(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Robust mean of rotations (K, 3, 3) -> (R (3, 3), inliers (K,) bool); see the module notes."""
     d = geodesic_distance(R[:, None], R[None, :])
     medoid = int(np.argmin(d.sum(axis=1)))
     dm = d[medoid]
     inliers = dm <= max(3 * 1.4826 * np.median(dm), np.radians(MIN_OUTLIER_DEG))
-    U, _, Vt = np.linalg.svd(R[inliers].sum(axis=0))
-    return U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt, inliers
+    return nearest_rotation(R[inliers].sum(axis=0)), inliers
 
 
 def relative_pose(Ra, ta, Rb, tb) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

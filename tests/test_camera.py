@@ -152,3 +152,17 @@ def test_bad_camera_input_names_the_field(tmp_path):
     p.write_text('{"name": "c", "width": 10}')
     with pytest.raises(ValueError, match="bad.json.*height"):
         Camera.load_json(p)
+
+
+def test_nearest_rotation_and_geodesic_distance():
+    from stereo_bench.camera import geodesic_distance, nearest_rotation
+
+    rng = np.random.default_rng(5)
+    R = rodrigues_to_matrix(rng.normal(0, 1, (20, 3)))
+    assert np.abs(nearest_rotation(R + rng.normal(0, 1e-9, R.shape)) - R).max() < 1e-8
+    # A reflection is projected onto a proper rotation (det +1), not kept.
+    assert np.allclose(np.linalg.det(nearest_rotation(-R)), 1.0)
+    small = rodrigues_to_matrix(np.array([1e-9, 0, 0]))
+    assert abs(geodesic_distance(np.eye(3), small) - 1e-9) < 1e-20
+    axis = np.array([0.0, 0.6, 0.8])
+    assert np.isclose(geodesic_distance(R[0], R[0] @ rodrigues_to_matrix(axis * 2.5)), 2.5)

@@ -51,7 +51,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import Camera, matrix_to_rodrigues
+from ..camera import Camera, matrix_to_rodrigues, nearest_rotation
 from .base import CalibrationResult, Observations
 from .refine import refine
 
@@ -214,12 +214,6 @@ def focal_and_tz(board_xy: list[np.ndarray], Yd: list[np.ndarray], Rs: list[np.n
 def flip_for_positive_f(R: np.ndarray) -> np.ndarray:
     """The other RAC branch: r3, r6, r7, r8 change sign (the paper's rule when f < 0)."""
     return R * np.array([[1, 1, -1], [1, 1, -1], [-1, -1, 1]])
-
-
-def nearest_rotation(M: np.ndarray) -> np.ndarray:
-    """Closest rotation (Frobenius) to M; removes the non-orthogonality noise leaves in stage 1."""
-    U, _, Vt = np.linalg.svd(M)
-    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
 
 
 def initial_estimate(obs: Observations, sx: float):

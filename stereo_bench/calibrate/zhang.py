@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-from ..camera import Camera, matrix_to_rodrigues
+from ..camera import Camera, matrix_to_rodrigues, nearest_rotation
 from .base import CalibrationResult, Observations
 from .homography import fit_homography
 from .refine import OpenCVModel, free_mask, refine
@@ -78,8 +78,7 @@ def extrinsics_from_homography(K: np.ndarray, H: np.ndarray) -> tuple[np.ndarray
     A = np.linalg.solve(K, H)
     A = A / np.linalg.norm(A[:, 0])  # A[2, 2] = H[2, 2] > 0 keeps the board origin in front
     Q = np.column_stack([A[:, 0], A[:, 1], np.cross(A[:, 0], A[:, 1])])
-    U, _, Vt = np.linalg.svd(Q)
-    return matrix_to_rodrigues(U @ Vt), A[:, 2]
+    return matrix_to_rodrigues(nearest_rotation(Q)), A[:, 2]
 
 
 def radial_from_linear(K, rvecs, tvecs, obs: Observations) -> np.ndarray:
