@@ -21,7 +21,9 @@ from rich.console import Console
 
 from stereo_bench.calibrate import available_methods
 from stereo_bench.config import ConfigError, load_rig
+from stereo_bench.cli import say
 from stereo_bench.pipeline import Trial, load_run
+from stereo_bench.rundir import NAME_PATTERN, locked, write_json, write_text
 
 from .body import load_body_model
 from .fit import fit_smpl
@@ -35,6 +37,9 @@ from .scene import in_true_world, make_scene, rig_axes, run_description
 console = Console(stderr=True)
 CALIB_CHOICES = ("gt", *available_methods(), "all")
 NOISE_PX = 1.0
+MAX_NOISE_PX = 100.0
+MAX_DISTANCE_MM = 100_000.0  # 100 m: a person is then about 20 px tall through a 1000 px lens
+MIN_DETECTED = 0.5
 
 
 DEFAULT_RUN = "out/quickstart"
@@ -114,13 +119,41 @@ def _methods(args, trials: list[Trial]) -> list[str]:
     return ["gt", args.calib]
 
 
-def _finite(x):
-    """JSON without NaN: NaN and inf become null."""
-    if isinstance(x, dict):
-        return {k: _finite(v) for k, v in x.items()}
-    if isinstance(x, list):
-        return [_finite(v) for v in x]
-    return None if isinstance(x, float) and not math.isfinite(x) else x
+def check_options(args) -> None:
+    """Refuse options that would give a number without meaning (NaN noise, a body 1000 km away,
+    every detection missed), naming the option and the range expected."""
+    def need(ok, option, expected, value):
+        if not ok:
+            raise ValueError(f"{option}: expected {expected}, got {value!r}")
+
+    need(1 <= args.frames <= 10_000, "--frames", "1..10000", args.frames)
+    if args.trials is not None:
+        need(1 <= args.trials <= 1000, "--trials", "1..1000", args.trials)
+    need(0 <= args.seed < 2**63, "--seed", "a non-negative integer", args.seed)
+    if args.noise_px is not None:
+        need(math.isfinite(args.noise_px) and 0 <= args.noise_px <= MAX_NOISE_PX, "--noise-px",
+             f"a number in 0..{MAX_NOISE_PX} px", args.noise_px)
+    for option, value in (("--outlier-rate", args.outlier_rate), ("--miss-rate", args.miss_rate)):
+        if value is not None:
+            need(math.isfinite(value) and 0 <= value < 1, option, "a rate in [0, 1)", value)
+    if args.distance_mm is not None:
+        need(math.isfinite(args.distance_mm) and 0 < args.distance_mm <= MAX_DISTANCE_MM,
+             "--distance-mm", f"a distance in (0, {MAX_DISTANCE_MM:g}] mm", args.distance_mm)
+
+
+def _warnings(results: dict) -> list[str]:
+    """What the user must know to read the numbers: too few detections, no method to compare."""
+    out = []
+    counts = results["detections"]
+    if counts.get("views") and counts["detected"] < MIN_DETECTED * counts["views"]:
+        out.append(f"only {counts['detected']} of {counts['views']} joint views were detected "
+                   f"({counts['detected'] / counts['views']:.0%}); MPJPE rests on few "
+                   f"triangulated joints")
+    if results["settings"]["calib"] == "all" and list(results["methods"]) == ["gt"]:
+        out.append(f"{results['settings']['source']}: no calibrated rig in this run (a mono rig, "
+                   f"or written by `stereo-bench calibrate`); only the true cameras (gt) are "
+                   f"reported")
+    return out
 
 
 def _evaluate_method(cameras, keypoints, scene, args, model) -> tuple[dict, np.ndarray]:
@@ -155,8 +188,7 @@ def _display(truth, *joints):
 def evaluate(args) -> tuple[dict, dict]:
     """Run every trial -> (results, {method: (truth, estimate) of trial 0's middle frame (24, 3)
     in the rig's (right, depth, up) axes, for the skeleton plot})."""
-    if args.frames < 1 or (args.trials is not None and args.trials < 1):
-        raise ValueError("--frames and --trials: expected at least 1")
+    check_options(args)
     noise = (args.noise_px, args.outlier_rate, args.miss_rate)
     if args.keypoints and any(v is not None for v in noise):
         raise ValueError("--noise-px, --outlier-rate and --miss-rate shape synthetic keypoints; "
@@ -228,14 +260,14 @@ def evaluate(args) -> tuple[dict, dict]:
     }
     results = {"rig": rig, "environment": env, "settings": settings, "detections": detections,
                "methods": {m: aggregate(per_method[m]) for m in methods}, "trials": raw}
+    results["warnings"] = _warnings(results)
     return results, examples
 
 
 def write_outputs(results: dict, examples: dict, out: Path) -> None:
     """results.json, report.md, mpjpe.png and skeleton.png (the chosen method, trial 0)."""
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps(_finite(results), indent=2))
-    (out / "report.md").write_text(markdown(results))
+    write_json(out / "results.json", results)
+    write_text(out / "report.md", markdown(results))
     plot_mpjpe(results, out / "mpjpe.png")
     shown = next((m for m in examples if m != "gt"), "gt")
     if shown in examples:
@@ -250,12 +282,20 @@ def main(argv=None) -> int:
         args.run = DEFAULT_RUN
     try:
         results, examples = evaluate(args)
-        out = Path(args.out or Path("out") / results["rig"] / "pose_eval")
-        write_outputs(results, examples, out)
+        rig = results["rig"] if NAME_PATTERN.match(results["rig"]) and results["rig"] not in (
+            ".", "..") else "run"
+        out = Path(args.out or Path("out") / rig / "pose_eval")
+        with locked(out):
+            write_outputs(results, examples, out)
     except (ConfigError, FileNotFoundError, ValueError) as e:
-        console.print(f"[red]error:[/red] {e}")
+        say("error", "red", str(e))
+        return 2
+    except OSError as e:
+        say("error", "red", f"{e.filename + ': ' if e.filename else ''}{e.strerror or e}")
         return 2
     console.print(markdown(results), markup=False, soft_wrap=True, highlight=False)
+    for w in results["warnings"]:
+        say("warning", "yellow", w)
     console.print(f"wrote {out}/results.json, report.md, mpjpe.png, skeleton.png")
     return 0
 

@@ -15,18 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from stereo_bench.camera import Camera, radial_fold_radius, undistort_normalized
+from stereo_bench.camera import Camera
 from stereo_bench.triangulate import refine_points, triangulate_dlt, triangulate_robust
 
 from .observe import Keypoints
-
-
-def invertible(camera: Camera, pixels: np.ndarray) -> np.ndarray:
-    """(...,) bool: the pixel (..., 2) has a unique ray through ``camera`` (as Camera.unproject
-    requires; an estimated distortion can fold inside the image, TRAPS.md)."""
-    xy, converged = undistort_normalized(camera.pixels_to_distorted_normalized(pixels), camera.dist,
-                                         tol=1e-10 / max(camera.fx, camera.fy))
-    return converged & (np.linalg.norm(xy, axis=-1) < radial_fold_radius(camera.dist))
 
 
 def triangulate_joints(cameras: list[Camera], keypoints: Keypoints, robust: bool = False,
@@ -40,7 +32,7 @@ def triangulate_joints(cameras: list[Camera], keypoints: Keypoints, robust: bool
     weights = keypoints.confidence.copy()
     dropped = 0
     for c, cam in enumerate(cameras):
-        bad = (weights[c] > 0) & ~invertible(cam, np.nan_to_num(pixels[c]))
+        bad = (weights[c] > 0) & ~cam.invertible(np.nan_to_num(pixels[c]))
         pixels[c][bad], weights[c][bad] = np.nan, 0.0
         dropped += int(bad.sum())
     if robust:

@@ -21,11 +21,12 @@ distortions that are not invertible over the image (a fold of the radial map ins
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+
+from .rundir import read_json, write_json
 
 DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "skew")
@@ -437,24 +438,34 @@ class Camera:
         xd = (uv[..., 0] - self.cx - self.skew * yd) / self.fx
         return np.stack([xd, yd], -1)
 
+    def _undistorted(self, uv: np.ndarray, tol_px: float) -> tuple[np.ndarray, np.ndarray]:
+        """(undistorted normalized xy (..., 2), valid (...)): valid where Newton's iteration
+        converged inside the radial fold, i.e. where the pixel has exactly one ray."""
+        xd = self.pixels_to_distorted_normalized(uv)
+        xy, ok = undistort_normalized(xd, self.dist, tol=tol_px / max(self.fx, self.fy))
+        r = np.linalg.norm(xy, axis=-1)
+        return xy, ok & (r < radial_fold_radius(self.dist)) & np.isfinite(r)
+
+    def invertible(self, uv: np.ndarray, tol_px: float = 1e-10) -> np.ndarray:
+        """(...,) bool: the pixel (..., 2) has a unique ray (an estimated distortion can fold
+        or have a pole inside the image, TRAPS.md)."""
+        return self._undistorted(uv, tol_px)[1]
+
     def unproject(self, uv: np.ndarray, tol_px: float = 1e-10) -> np.ndarray:
         """Pixels (..., 2) -> undistorted normalized coordinates (..., 2) (rays (x, y, 1)).
 
         Newton's iteration to ``tol_px`` in pixels. Raises DistortionNotInvertibleError when a
         pixel lies beyond the fold of the radial distortion or the iteration does not converge.
         """
-        xd = self.pixels_to_distorted_normalized(uv)
-        tol = tol_px / max(self.fx, self.fy)
-        xy, ok = undistort_normalized(xd, self.dist, tol=tol)
-        fold = radial_fold_radius(self.dist)
-        r = np.linalg.norm(xy, axis=-1)
-        bad = ~ok | (r >= fold) | ~np.isfinite(r)
-        if np.any(bad):
+        xy, valid = self._undistorted(uv, tol_px)
+        if not np.all(valid):
+            bad = ~valid
             where = np.asarray(uv)[bad][0]
             raise DistortionNotInvertibleError(
                 f"camera {self.name!r}: distortion {self.dist.tolist()} is not invertible at "
                 f"pixel ({where[0]:.1f}, {where[1]:.1f}) ({int(bad.sum())} pixels): the radial "
-                f"map folds at normalized radius {fold:.4g}; reduce |k| or the image size")
+                f"map folds at normalized radius {radial_fold_radius(self.dist):.4g}; reduce "
+                f"|k| or the image size")
         return xy
 
     def unproject_rays(self, uv: np.ndarray) -> np.ndarray:
@@ -509,13 +520,13 @@ class Camera:
             raise ValueError(f"{source}: {e}") from None
 
     def save_json(self, path) -> None:
-        Path(path).write_text(json.dumps(self.to_dict(), indent=2))
+        write_json(path, self.to_dict())
 
     @classmethod
     def load_json(cls, path) -> "Camera":
         try:
-            d = json.loads(Path(path).read_text())
-        except (OSError, json.JSONDecodeError) as e:
+            d = read_json(path)
+        except OSError as e:
             raise ValueError(f"{path}: cannot read camera JSON ({e})") from None
         return cls.from_dict(d, source=str(path))
 

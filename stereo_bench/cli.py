@@ -8,10 +8,13 @@ from pathlib import Path
 
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.text import Text
 
 from .config import ConfigError, load_rig
 
 console = Console(stderr=True)
+MAX_TRIALS = 1000
+MAX_WORKERS = 64
 
 
 def progress_bar() -> Progress:
@@ -19,20 +22,41 @@ def progress_bar() -> Progress:
                     TimeRemainingColumn(), console=console, transient=False)
 
 
+def say(label: str, style: str, message: str) -> None:
+    """``label: message`` on stderr; the message is printed as is (no rich markup, so a
+    bracket in a file name or a list cannot change it)."""
+    console.print(Text(f"{label}: ", style=style) + Text(message), highlight=False,
+                  soft_wrap=True)
+
+
+def _warn(lines) -> None:
+    for line in lines:
+        say("warning", "yellow", line)
+
+
 def cmd_render(args) -> int:
     from .dataset import write_dataset
+    from .rundir import locked
 
     cfg = load_rig(args.rig)
     out = Path(args.out or Path("out") / cfg.name)
-    with progress_bar() as bar:
+    with locked(out), progress_bar() as bar:
         task = bar.add_task(f"render {cfg.name}", total=None)
-        ds = write_dataset(cfg, out, lambda d, n: bar.update(task, completed=d, total=n))
-    for cam, frames in ds.manifest["frames_out_of_view"].items():
-        if frames:
-            console.print(f"[yellow]{cam}: board partly out of view in {len(frames)} of "
-                          f"{ds.frames} frames: {frames}")
+        ds = _named(args.rig, write_dataset, cfg, out,
+                    lambda d, n: bar.update(task, completed=d, total=n))
+    _warn(ds.warnings)
     console.print(f"wrote {ds.frames} frames x {len(ds.cameras)} cameras to {out}")
     return 0
+
+
+def _named(source, fn, *args):
+    """``fn(*args)``, with a refusal of the rig (UnusableRigError) naming ``source``."""
+    from .dataset import UnusableRigError
+
+    try:
+        return fn(*args)
+    except UnusableRigError as e:
+        raise ConfigError(f"{source}: {e}") from None
 
 
 def _methods(text: str) -> list[str]:
@@ -47,41 +71,58 @@ def _methods(text: str) -> list[str]:
 
 
 def _report(trials: list[dict], out: Path, title: str) -> dict:
-    import json
-
     from .report import aggregate, markdown
+    from .rundir import RunPaths, write_json, write_text
 
+    run = RunPaths(out)
     agg = aggregate(trials)
-    (out / "results.json").write_text(json.dumps({"aggregate": agg, "trials": trials}, indent=2))
+    write_json(run.results, {"aggregate": agg, "trials": trials})
     md = markdown(agg, title)
-    (out / "report.md").write_text(md)
+    write_text(run.report, md)
     console.print(md, markup=False, soft_wrap=True, highlight=False)
+    _warn(agg["warnings"] + agg["notes"])
     return agg
 
 
-def _run(cfg, out: Path, args, first_dataset=None, with_rig=True) -> list[dict]:
+def _nothing_calibrated(trials: list[dict]) -> bool:
+    return all("error" in entry for t in trials for cams in t["calibration"].values()
+               for entry in cams.values())
+
+
+def _run(cfg, out: Path, args, source, first_dataset=None, with_rig=True) -> list[dict]:
     from .pipeline import run
 
     methods = _methods(args.methods)
-    if args.trials < 1 or args.workers < 1:
-        raise ValueError("--trials and --workers: expected at least 1")
+    if not 1 <= args.trials <= MAX_TRIALS or not 1 <= args.workers <= MAX_WORKERS:
+        raise ValueError(f"--trials: expected 1..{MAX_TRIALS}; --workers: expected "
+                         f"1..{MAX_WORKERS}; got {args.trials} and {args.workers}")
     with progress_bar() as bar:
         task = bar.add_task(f"{cfg.name}: trials", total=args.trials)
-        return run(cfg, out, methods, args.trials, args.workers,
-                   lambda d, n: bar.update(task, completed=d, total=n),
-                   first_dataset=first_dataset, with_rig=with_rig)
+        return _named(source, run, cfg, out, methods, args.trials, args.workers,
+                      lambda d, n: bar.update(task, completed=d, total=n), first_dataset,
+                      with_rig)
+
+
+def _finish(trials: list[dict], written: str) -> int:
+    if _nothing_calibrated(trials):
+        say("error", "red", "no camera could be calibrated with any method (see the failures "
+                            f"in the report); wrote {written}")
+        return 1
+    console.print(f"wrote {written}")
+    return 0
 
 
 def cmd_calibrate(args) -> int:
     from .dataset import Dataset
 
     base = Dataset.load(args.dataset)
+    _warn(base.warnings)
     out = Path(args.out or Path(args.dataset) / "calibration")
-    trials = _run(base.config, out, args, first_dataset=base.root, with_rig=False)
+    trials = _run(base.config, out, args, args.dataset, first_dataset=base.root, with_rig=False)
     _report(trials, out, f"{base.config.name}: {base.config.pattern.kind}, "
                          f"{base.config.environment.kind}")
-    console.print(f"wrote {out}/results.json, report.md; estimates in {out}/trials/*/calibrations")
-    return 0
+    return _finish(trials, f"{out}/results.json, report.md; estimates in "
+                           f"{out}/trials/*/calibrations")
 
 
 def cmd_run(args) -> int:
@@ -89,12 +130,11 @@ def cmd_run(args) -> int:
 
     cfg = load_rig(args.rig)
     out = Path(args.out or Path("out") / cfg.name)
-    trials = _run(cfg, out, args)
+    trials = _run(cfg, out, args, args.rig)
     agg = _report(trials, out, f"{cfg.name}: {cfg.pattern.kind}, {cfg.environment.kind}")
     plots = plot_run(out, trials, agg)
-    console.print(f"wrote {out}/results.json, {out}/report.md and {len(plots)} plots in "
-                  f"{out}/plots")
-    return 0
+    return _finish(trials, f"{out}/results.json, {out}/report.md and {len(plots)} plots in "
+                           f"{out}/plots")
 
 
 def cmd_sweep(args) -> int:
@@ -182,7 +222,11 @@ def main(argv=None) -> int:
     try:
         return args.func(args)
     except (ConfigError, FileNotFoundError, ValueError) as e:
-        console.print(f"[red]error:[/red] {e}")
+        say("error", "red", str(e))
+        return 2
+    except OSError as e:  # a full disk, a permission, a name the file system refuses
+        where = f"{e.filename}: " if e.filename else ""
+        say("error", "red", f"{where}{e.strerror or e}")
         return 2
 
 

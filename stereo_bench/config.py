@@ -6,18 +6,41 @@ Every key is checked by pydantic: an unknown key, a missing field or a wrong typ
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, Strict, ValidationError,
+                      field_validator, model_validator)
 
 from .camera import Camera, look_at_rotation, matrix_to_rodrigues
+from .rundir import check_name
+
+# Upper bounds that keep every input within what one machine can render and calibrate; beyond
+# them a run would end in a MemoryError or an overflow rather than in a result.
+MAX_IMAGE_SIDE = 16384
+MAX_IMAGE_PIXELS = 64_000_000
+MAX_CAMERAS = 64
+MAX_FRAMES = 10_000
+MAX_PATTERN_COUNT = 100  # squares, rows or columns of a board
+MAX_BOARD_MM = 1200.0  # the board's outline, per side (its texture is written at 10 px/mm)
+MAX_BLUR_PX = 50.0
+MAX_FILE_BYTES = 1 << 20
+MAX_NESTING = 64
 
 
 class ConfigError(ValueError):
     """A rig file that cannot be used; the message names the file and the field."""
+
+
+# Strict scalars: YAML's `true` is not 1, `"9"` is not 9, and NaN or infinity is no length.
+Int = Annotated[int, Strict()]
+Float = Annotated[float, Strict(), Field(allow_inf_nan=False)]
+Name = Annotated[str, Strict(), AfterValidator(lambda v: check_name(v, "name"))]
+Vec3 = tuple[Float, Float, Float]
 
 
 class _Strict(BaseModel):
@@ -27,26 +50,55 @@ class _Strict(BaseModel):
 class CameraConfig(_Strict):
     """One camera: intrinsics, OpenCV distortion and where it sits in the world (mm)."""
 
-    name: str
-    width: int = Field(gt=0)
-    height: int = Field(gt=0)
-    fx: float = Field(gt=0)
-    fy: float = Field(gt=0)
-    cx: float
-    cy: float
-    skew: float = 0.0
-    dist: list[float] = Field(default_factory=lambda: [0.0] * 8,
+    name: Name
+    width: Int = Field(ge=2, le=MAX_IMAGE_SIDE)
+    height: Int = Field(ge=2, le=MAX_IMAGE_SIDE)
+    fx: Float = Field(gt=0, le=1e6)
+    fy: Float = Field(gt=0, le=1e6)
+    cx: Float
+    cy: Float
+    skew: Float = Field(0.0, ge=-1e4, le=1e4)
+    dist: list[Float] = Field(default_factory=lambda: [0.0] * 8,
                               description="[k1, k2, p1, p2, k3, k4, k5, k6] (OpenCV order)")
-    position_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    look_at_mm: tuple[float, float, float] = (0.0, 0.0, 1000.0)
-    up: tuple[float, float, float] = (0.0, -1.0, 0.0)
+    position_mm: Vec3 = (0.0, 0.0, 0.0)
+    look_at_mm: Vec3 = (0.0, 0.0, 1000.0)
+    up: Vec3 = (0.0, -1.0, 0.0)
 
     @field_validator("dist")
     @classmethod
     def _dist_len(cls, v):
         if not 4 <= len(v) <= 8:
             raise ValueError("expected 4 to 8 coefficients [k1, k2, p1, p2, k3, k4, k5, k6]")
+        if max(abs(x) for x in v) > 1e4:
+            raise ValueError("expected coefficients of magnitude at most 1e4")
         return list(v) + [0.0] * (8 - len(v))
+
+    @field_validator("position_mm", "look_at_mm")
+    @classmethod
+    def _in_reach(cls, v):
+        if max(abs(x) for x in v) > 1e6:
+            raise ValueError("expected coordinates within 1 km (1e6 mm) of the origin")
+        return v
+
+    @model_validator(mode="after")
+    def _geometry(self):
+        if self.width * self.height > MAX_IMAGE_PIXELS:
+            raise ValueError(f"width x height: {self.width}x{self.height} exceeds "
+                             f"{MAX_IMAGE_PIXELS:,} pixels")
+        # A principal point outside the image leaves no field of view on one side, and the
+        # automatic trajectory would put the board kilometres away to keep it in view.
+        for axis, c, size in (("cx", self.cx, self.width), ("cy", self.cy, self.height)):
+            if not 0.05 * size <= c <= 0.95 * size - 1:
+                raise ValueError(f"{axis}: {c} lies outside the central 90 % of the image "
+                                 f"(0..{size - 1} px); expected a principal point near the "
+                                 f"image centre ({(size - 1) / 2})")
+        view = np.subtract(self.look_at_mm, self.position_mm)
+        if np.linalg.norm(view) < 1e-6:
+            raise ValueError("look_at_mm: expected a point other than position_mm")
+        if np.linalg.norm(np.cross(view, self.up)) < 1e-9 * np.linalg.norm(view) * max(
+                np.linalg.norm(self.up), 1e-300):
+            raise ValueError("up: expected a direction not parallel to the viewing direction")
+        return self
 
     def camera(self) -> Camera:
         R = look_at_rotation(np.array(self.position_mm), np.array(self.look_at_mm),
@@ -56,34 +108,85 @@ class CameraConfig(_Strict):
                       self.skew, np.array(self.dist), matrix_to_rodrigues(R), t)
 
 
+def _check_override(kind: str, field: dataclasses.Field, value):
+    """One pattern override, checked against the pattern class's field type and bounds."""
+    if field.type in ("int", int):
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise ValueError(f"pattern.{field.name}: expected an integer, got {value!r}")
+        if not 2 <= value <= MAX_PATTERN_COUNT:
+            raise ValueError(f"pattern.{field.name}: expected 2..{MAX_PATTERN_COUNT}, got {value}")
+    elif field.type in ("float", float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                or not math.isfinite(value):
+            raise ValueError(f"pattern.{field.name}: expected a finite number, got {value!r}")
+        if not 0 <= value <= MAX_BOARD_MM:
+            raise ValueError(f"pattern.{field.name}: expected 0..{MAX_BOARD_MM} mm, got {value}")
+        return float(value)
+    elif field.type in ("str", str) and not isinstance(value, str):
+        raise ValueError(f"pattern.{field.name}: expected a string, got {value!r}")
+    return value
+
+
 class PatternConfig(_Strict):
-    """The board: a kind plus optional overrides of its geometry (see stereo_bench.patterns)."""
+    """The board: a kind plus optional overrides of its geometry (see stereo_bench.patterns).
+
+    Overrides are checked per kind: the field must exist on that board, with its type, and the
+    board they make must be buildable, not degenerate and of a size one machine can render."""
 
     model_config = ConfigDict(extra="allow", frozen=True)
     kind: Literal["checkerboard", "symmetric_circles", "asymmetric_circles", "charuco"]
 
+    @model_validator(mode="after")
+    def _overrides(self):
+        from .patterns import PATTERNS
+
+        cls = PATTERNS[self.kind]
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        for name, value in self.overrides().items():
+            if name not in fields:
+                raise ValueError(f"pattern.{name}: unknown field for {self.kind} (fields: "
+                                 f"{', '.join(sorted(fields))})")
+            self.model_extra[name] = _check_override(self.kind, fields[name], value)
+        board = self.build()
+        w, h = board.size_mm
+        if max(w, h) > MAX_BOARD_MM:
+            raise ValueError(f"pattern: the board's outline is {w:.0f} x {h:.0f} mm; expected "
+                             f"at most {MAX_BOARD_MM:.0f} mm per side")
+        xy = board.object_points()[:, :2]
+        spread = np.linalg.svd(xy - xy.mean(0), compute_uv=False)
+        if spread[1] < 1e-6 * spread[0]:
+            raise ValueError("pattern: its feature points lie on a line; a planar calibration "
+                             "needs a two-dimensional grid")
+        return self
+
     def overrides(self) -> dict:
         return dict(self.model_extra or {})
+
+    def build(self):
+        from .patterns import pattern_from_config
+
+        return pattern_from_config(self.kind, **self.overrides())
 
 
 class TrajectoryConfig(_Strict):
     """The paper's conical spring: a helix around the rig's viewing axis whose radius grows
     linearly with depth; the board centre always faces the rig, tilted by up to ``tilt_deg``."""
 
-    frames: int = Field(127, gt=0)
+    frames: Int = Field(127, gt=0, le=MAX_FRAMES)
     # None: chosen from the board size and the narrowest camera's field of view (rig.py).
-    depth_mm: tuple[float, float] | None = None
-    radius_mm: tuple[float, float] | None = None
-    turns: float = Field(4.0, gt=0)
-    tilt_deg: float = Field(30.0, ge=0, lt=80)
-    roll_deg: float = Field(20.0, ge=0, le=180)
+    depth_mm: tuple[Float, Float] | None = None
+    radius_mm: tuple[Float, Float] | None = None
+    turns: Float = Field(4.0, gt=0, le=1000)
+    tilt_deg: Float = Field(30.0, ge=0, lt=80)
+    roll_deg: Float = Field(20.0, ge=0, le=180)
 
     @model_validator(mode="after")
     def _ranges(self):
-        if self.depth_mm is not None and not 0 < self.depth_mm[0] <= self.depth_mm[1]:
-            raise ValueError("depth_mm: expected 0 < near <= far")
-        if self.radius_mm is not None and min(self.radius_mm) < 0:
-            raise ValueError("radius_mm: expected non-negative radii")
+        if self.depth_mm is not None and not 0 < self.depth_mm[0] <= self.depth_mm[1] <= 1e6:
+            raise ValueError("depth_mm: expected 0 < near <= far <= 1e6 mm")
+        if self.radius_mm is not None and not 0 <= min(self.radius_mm) <= max(
+                self.radius_mm) <= 1e6:
+            raise ValueError("radius_mm: expected radii in 0..1e6 mm")
         return self
 
 
@@ -92,18 +195,25 @@ class EnvironmentConfig(_Strict):
     shading plus additive Gaussian noise of ``noise_sigma`` grey levels)."""
 
     kind: Literal["clean", "noisy"] = "clean"
-    noise_sigma: float = Field(6.0, ge=0)
-    light_direction: tuple[float, float, float] = (0.6, -0.5, 1.0)
-    ambient: float = Field(0.35, ge=0, le=1)
-    blur_sigma_px: float = Field(0.0, ge=0)
-    background: int = Field(110, ge=0, le=255)
-    supersampling: int = Field(2, ge=1, le=16)
+    noise_sigma: Float = Field(6.0, ge=0, le=255)
+    light_direction: Vec3 = (0.6, -0.5, 1.0)
+    ambient: Float = Field(0.35, ge=0, le=1)
+    blur_sigma_px: Float = Field(0.0, ge=0, le=MAX_BLUR_PX)
+    background: Int = Field(110, ge=0, le=255)
+    supersampling: Int = Field(2, ge=1, le=16)
+
+    @field_validator("light_direction")
+    @classmethod
+    def _nonzero(cls, v):
+        if not 1e-9 < np.linalg.norm(v) < 1e9:
+            raise ValueError("expected a direction of length between 1e-9 and 1e9")
+        return v
 
 
 class RigConfig(_Strict):
-    name: str = "rig"
-    seed: int = 0
-    cameras: list[CameraConfig] = Field(min_length=1)
+    name: Name = "rig"
+    seed: Int = Field(0, ge=0, lt=2**63)
+    cameras: list[CameraConfig] = Field(min_length=1, max_length=MAX_CAMERAS)
     pattern: PatternConfig
     trajectory: TrajectoryConfig = TrajectoryConfig()
     environment: EnvironmentConfig = EnvironmentConfig()
@@ -113,6 +223,10 @@ class RigConfig(_Strict):
         names = [c.name for c in self.cameras]
         if len(set(names)) != len(names):
             raise ValueError(f"cameras: names must be unique, got {names}")
+        total = sum(c.width * c.height for c in self.cameras) * self.trajectory.frames
+        if total > 4e11:
+            raise ValueError(f"trajectory.frames: {self.trajectory.frames} frames of these "
+                             f"cameras are {total:.2g} pixels; expected at most 4e11")
         return self
 
     def cameras_true(self) -> list[Camera]:
@@ -128,6 +242,11 @@ def _describe(err: ValidationError, source: str) -> str:
             msg = "unknown key (check its spelling; see docs/rig_format.md)"
         elif e["type"] == "missing":
             msg = "missing required field"
+        elif e["type"] == "value_error":
+            msg = msg.removeprefix("Value error, ")
+        else:
+            shown = repr(e.get("input"))
+            msg += f", got {shown if len(shown) <= 60 else shown[:57] + '...'}"
         lines.append(f"  {path}: {msg}")
     return "\n".join(lines)
 
@@ -143,12 +262,75 @@ def parse_rig(data: dict, source: str = "<rig>") -> RigConfig:
         raise ConfigError(_describe(e, source)) from None
 
 
-def load_rig(path) -> RigConfig:
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader, refusing a key given twice in one mapping (the plain loader keeps the
+    last one, so a second ``cameras:`` would silently drop the first list)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key {key!r}", key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
+def _depth(node, limit: int) -> int:
+    """Nesting depth of a composed YAML node, stopping at ``limit`` (no recursion)."""
+    stack, deepest = [(node, 1)], 0
+    while stack:
+        n, d = stack.pop()
+        deepest = max(deepest, d)
+        if deepest > limit:
+            break
+        if isinstance(n, yaml.SequenceNode):
+            stack.extend((c, d + 1) for c in n.value)
+        elif isinstance(n, yaml.MappingNode):
+            stack.extend((v, d + 1) for _, v in n.value)
+    return deepest
+
+
+def load_yaml(path, what: str = "rig file"):
+    """The data of a YAML file, or a ConfigError naming the file: unreadable, too large, not
+    UTF-8 text, not YAML, nested too deeply, or with a duplicate key."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
+        if path.is_dir():
+            raise ConfigError(f"{path}: is a directory; expected a {what}")
+        raw = path.read_bytes()
     except OSError as e:
-        raise ConfigError(f"{path}: cannot read rig file ({e.strerror})") from None
+        raise ConfigError(f"{path}: cannot read {what} ({e.strerror})") from None
+    if len(raw) > MAX_FILE_BYTES:
+        raise ConfigError(f"{path}: {len(raw):,} bytes; a {what} is expected to be under "
+                          f"{MAX_FILE_BYTES:,}")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {e.start}); expected a {what} "
+                          f"in YAML") from None
+    if "\x00" in text:
+        raise ConfigError(f"{path}: contains NUL characters; expected a {what} in YAML")
+    try:
+        # Composing is iterative in PyYAML; only the nesting check below stands between a
+        # 10,000-deep document and a RecursionError in the constructor.
+        node = yaml.compose(text, Loader=_UniqueKeyLoader)
+        if node is None:
+            return None
+        if _depth(node, MAX_NESTING) > MAX_NESTING:
+            raise ConfigError(f"{path}: nested more than {MAX_NESTING} levels deep; expected a "
+                              f"{what}")
+        loader = _UniqueKeyLoader(text)
+        try:
+            return loader.get_single_data()
+        finally:
+            loader.dispose()
     except yaml.YAMLError as e:
         raise ConfigError(f"{path}: not valid YAML ({e})") from None
-    return parse_rig(data, str(path))
+    except RecursionError:
+        raise ConfigError(f"{path}: nested too deeply; expected a {what}") from None
+
+
+def load_rig(path) -> RigConfig:
+    return parse_rig(load_yaml(path, "rig file"), str(path))

@@ -1,8 +1,9 @@
 """A rendered dataset on disk: images per camera plus exact ground truth as NumPy arrays.
 
-Layout (documented in docs/dataset_format.md)::
+Layout (documented in docs/dataset_format.md; paths built by ``rundir.DatasetPaths``)::
 
-    DIR/manifest.json               schema version, resolved config, seed, camera and file lists
+    DIR/manifest.json               schema version, fingerprint, resolved config, seed, camera
+                                    and file lists, how each camera sees the board, warnings
     DIR/config.yaml                 the resolved rig configuration (re-render with it)
     DIR/pattern.png                 the board texture
     DIR/timing.json                 how long the render took (the only file that varies)
@@ -11,12 +12,14 @@ Layout (documented in docs/dataset_format.md)::
                                     ids (N,), image_points (C,F,N,2), visible (C,F,N)
     DIR/images/<camera>/000000.png  synchronized frames, one folder per camera
 
-The manifest is written last, so a directory with a manifest is complete.
+The manifest is written last, so a directory with a readable manifest is complete; its
+``fingerprint`` (of the resolved configuration and the code's format version) says what it was
+rendered from, so a run reuses it only for the same configuration.
 """
 
 from __future__ import annotations
 
-import json
+import struct
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,12 +29,13 @@ import numpy as np
 import yaml
 
 from .camera import Camera
-from .config import RigConfig, parse_rig
-from .patterns import pattern_from_config
+from .config import ConfigError, RigConfig, parse_rig
 from .render import AnalyticRenderer, RenderSettings
-from .rig import GroundTruth, Rig, Trajectory
+from .rig import GroundTruth, Rig, Trajectory, coverage_warnings
+from .rundir import (DatasetPaths, UnreadableFileError, fingerprint, read_json, write_json,
+                     write_npy, write_png, write_text)
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 TEXTURE_PX_PER_MM = 10.0
 
 
@@ -39,10 +43,6 @@ def frame_rng(seed: int, camera_index: int, frame: int) -> np.random.Generator:
     """The noise generator of one image: independent of rendering order, so any subset of
     frames can be (re)rendered alone and still be byte-identical."""
     return np.random.default_rng([seed, camera_index, frame])
-
-
-def image_path(root: Path, camera: str, frame: int) -> Path:
-    return Path(root) / "images" / camera / f"{frame:06d}.png"
 
 
 def render_settings(cfg: RigConfig) -> RenderSettings:
@@ -54,19 +54,37 @@ def render_settings(cfg: RigConfig) -> RenderSettings:
         supersampling=env.supersampling)
 
 
+def dataset_fingerprint(cfg: RigConfig) -> str:
+    """What a dataset depends on: the resolved configuration (seed included) and the format."""
+    return fingerprint("dataset", SCHEMA_VERSION, cfg.model_dump(mode="json"))
+
+
+class UnusableRigError(ConfigError):
+    """A valid rig file whose cameras would never see the board well enough to detect it."""
+
+
 def write_dataset(cfg: RigConfig, out: Path, progress=None) -> "Dataset":
     """Render every camera and frame of ``cfg`` into ``out`` and write the ground truth.
 
+    The ground truth is computed first: a rig in which no camera would see the board larger
+    than ``MIN_BOARD_SPAN_PX`` is refused (UnusableRigError) before anything is rendered; a camera
+    that alone cannot see it is kept and named in the manifest's warnings.
     ``progress(done, total)`` is called after each image.
     """
-    out = Path(out)
-    rig = Rig.from_config(cfg)
+    paths = DatasetPaths(Path(out))
+    try:
+        rig = Rig.from_config(cfg)
+    except ValueError as e:  # a camera model or rig geometry the renderer cannot use
+        raise UnusableRigError(f"rig {cfg.name!r}: {e}") from None
     gt = rig.ground_truth()
+    coverage = rig.coverage(gt)
+    warnings, unusable = coverage_warnings(coverage, len(rig.trajectory))
+    if len(unusable) == len(rig.cameras):
+        raise UnusableRigError(
+            f"rig {cfg.name!r}: no camera would see the board: " + "; ".join(warnings)
+            + " (fields: cameras.*.fx/fy/position_mm/look_at_mm, trajectory.depth_mm)")
+    paths.manifest.unlink(missing_ok=True)
     settings = render_settings(cfg)
-    gt_dir = out / "ground_truth"
-    gt_dir.mkdir(parents=True, exist_ok=True)
-    manifest = out / "manifest.json"
-    manifest.unlink(missing_ok=True)
 
     total = len(rig.cameras) * len(rig.trajectory)
     done = 0
@@ -74,10 +92,9 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None) -> "Dataset":
     for c, cam in enumerate(rig.cameras):
         renderer = AnalyticRenderer(cam, rig.pattern, settings)
         R, t = rig.cam_from_board(cam)
-        (out / "images" / cam.name).mkdir(parents=True, exist_ok=True)
         for f in range(len(rig.trajectory)):
-            img = renderer.render(R[f], t[f], frame_rng(cfg.seed, c, f))
-            cv2.imwrite(str(image_path(out, cam.name, f)), img)
+            write_png(paths.image(cam.name, f), renderer.render(R[f], t[f],
+                                                                frame_rng(cfg.seed, c, f)))
             done += 1
             if progress:
                 progress(done, total)
@@ -96,15 +113,16 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None) -> "Dataset":
         "visible": gt.visible,
     }
     for name, a in arrays.items():
-        np.save(gt_dir / f"{name}.npy", a)
-    rig.pattern.save_texture(out / "pattern.png", TEXTURE_PX_PER_MM)
+        write_npy(paths.array(name), a)
+    write_png(paths.texture, rig.pattern.texture(TEXTURE_PX_PER_MM))
     resolved = cfg.model_dump(mode="json")
-    (out / "config.yaml").write_text(yaml.safe_dump(resolved, sort_keys=False))
-    (gt_dir / "cameras.json").write_text(json.dumps([c.to_dict() for c in cams], indent=2))
+    write_text(paths.config, yaml.safe_dump(resolved, sort_keys=False))
+    write_json(paths.cameras, [c.to_dict() for c in cams])
     # Timing lives outside the manifest so that the same config and seed give identical files.
-    (out / "timing.json").write_text(json.dumps({"render_s": time.perf_counter() - t0}))
-    manifest.write_text(json.dumps({
+    write_json(paths.timing, {"render_s": time.perf_counter() - t0})
+    write_json(paths.manifest, {
         "schema_version": SCHEMA_VERSION,
+        "fingerprint": dataset_fingerprint(cfg),
         "name": cfg.name,
         "seed": cfg.seed,
         "cameras": [c.name for c in cams],
@@ -112,13 +130,23 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None) -> "Dataset":
         "points_per_frame": int(gt.points.shape[2]),
         "pattern": {"kind": cfg.pattern.kind, "code": rig.pattern.code,
                     "texture_px_per_mm": TEXTURE_PX_PER_MM},
-        "frames_out_of_view": rig.frames_out_of_view(gt),
+        "coverage": coverage,
+        "warnings": warnings,
         "config": resolved,
         "opencv_version": cv2.__version__,
-        "ground_truth": {k: f"ground_truth/{k}.npy" for k in arrays},
+        "ground_truth": {k: paths.array(k).relative_to(paths.root).as_posix() for k in arrays},
         "images": {c.name: f"images/{c.name}/{{frame:06d}}.png" for c in cams},
-    }, indent=2))
+    })
     return Dataset.load(out)
+
+
+def png_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) from a PNG's header, or None if the file is not a PNG."""
+    with open(path, "rb") as f:
+        head = f.read(24)
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        return None
+    return struct.unpack(">II", head[16:24])
 
 
 @dataclass(frozen=True, eq=False)
@@ -135,52 +163,103 @@ class Dataset:
     manifest: dict
 
     @property
+    def paths(self) -> DatasetPaths:
+        return DatasetPaths(self.root)
+
+    @property
     def pattern(self):
-        return pattern_from_config(self.config.pattern.kind, **self.config.pattern.overrides())
+        return self.config.pattern.build()
+
+    @property
+    def fingerprint(self) -> str:
+        return self.manifest["fingerprint"]
+
+    @property
+    def warnings(self) -> list[str]:
+        return list(self.manifest.get("warnings", []))
 
     @property
     def render_time_s(self) -> float:
-        path = self.root / "timing.json"
-        return json.loads(path.read_text())["render_s"] if path.is_file() else float("nan")
+        try:
+            return float(read_json(self.paths.timing)["render_s"])
+        except (FileNotFoundError, UnreadableFileError, KeyError, TypeError, ValueError):
+            return float("nan")
 
     @property
     def frames(self) -> int:
         return len(self.trajectory)
 
     def image(self, camera: int | str, frame: int) -> np.ndarray:
-        name = camera if isinstance(camera, str) else self.cameras[camera].name
-        path = image_path(self.root, name, frame)
+        cam = next(c for c in self.cameras if c.name == camera) if isinstance(camera, str) \
+            else self.cameras[camera]
+        path = self.paths.image(cam.name, frame)
         img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         if img is None:
             raise FileNotFoundError(f"{path}: missing or unreadable image")
+        if img.shape != (cam.height, cam.width):
+            raise ValueError(f"{path}: {img.shape[1]}x{img.shape[0]} px, expected "
+                             f"{cam.width}x{cam.height} (camera {cam.name!r})")
         return img
 
     def rig(self) -> Rig:
         return Rig(self.config.name, self.config.seed, self.cameras, self.pattern,
                    self.trajectory)
 
+    def check_images(self) -> None:
+        """Refuse a dataset whose images are not the size of their camera (an image replaced
+        after rendering would otherwise be detected and scored against the wrong truth)."""
+        for cam in self.cameras:
+            for f in range(self.frames):
+                path = self.paths.image(cam.name, f)
+                if not path.is_file():
+                    continue  # a missing image is one failed frame, recorded by detection
+                size = png_size(path)
+                if size is None:
+                    raise ValueError(f"{path}: not a PNG image")
+                if size != (cam.width, cam.height):
+                    raise ValueError(f"{path}: {size[0]}x{size[1]} px, expected "
+                                     f"{cam.width}x{cam.height} (camera {cam.name!r}); the "
+                                     f"dataset was changed after it was rendered")
+
     @classmethod
     def load(cls, root) -> "Dataset":
+        """Read a dataset; FileNotFoundError when it has no manifest, UnreadableFileError or
+        ValueError (naming the file) when its files are torn, inconsistent or of another
+        version."""
         root = Path(root)
-        mpath = root / "manifest.json"
+        paths = DatasetPaths(root)
+        mpath = paths.manifest
         if not mpath.is_file():
             raise FileNotFoundError(f"{mpath}: not found; is {root} a complete dataset written "
                                     f"by `stereo-bench render`?")
-        manifest = json.loads(mpath.read_text())
-        if manifest.get("schema_version") != SCHEMA_VERSION:
-            raise ValueError(f"{mpath}: schema_version {manifest.get('schema_version')!r}, "
-                             f"expected {SCHEMA_VERSION}")
-        cfg = parse_rig(manifest["config"], str(mpath))
+        manifest = read_json(mpath)
+        if not isinstance(manifest, dict) or manifest.get("schema_version") != SCHEMA_VERSION:
+            found = manifest.get("schema_version") if isinstance(manifest, dict) else None
+            raise UnreadableFileError(f"{mpath}: schema_version {found!r}, expected "
+                                      f"{SCHEMA_VERSION} (render it again)")
+        try:
+            cfg = parse_rig(manifest["config"], str(mpath))
+            if manifest["fingerprint"] != dataset_fingerprint(cfg):
+                raise UnreadableFileError(f"{mpath}: its fingerprint does not match its config "
+                                          f"(edited by hand?); render it again")
 
-        def arr(name):
-            p = root / manifest["ground_truth"][name]
-            if not p.is_file():
-                raise FileNotFoundError(f"{p}: ground-truth array missing")
-            return np.load(p)
+            def arr(name):
+                p = root / manifest["ground_truth"][name]
+                if not p.is_file():
+                    raise FileNotFoundError(f"{p}: ground-truth array missing")
+                try:
+                    return np.load(p, allow_pickle=False)
+                except (OSError, ValueError) as e:
+                    raise UnreadableFileError(f"{p}: unreadable ({e})") from None
 
-        cams = [Camera.from_dict(d, f"{root}/ground_truth/cameras.json")
-                for d in json.loads((root / "ground_truth" / "cameras.json").read_text())]
-        return cls(root, cfg, cams,
-                   Trajectory(arr("world_from_board_rvec"), arr("world_from_board_tvec")),
-                   arr("object_points"), arr("ids"),
-                   GroundTruth(arr("image_points"), arr("visible")), manifest)
+            cams = [Camera.from_dict(d, str(paths.cameras)) for d in read_json(paths.cameras)]
+        except (KeyError, TypeError) as e:
+            raise UnreadableFileError(f"{mpath}: incomplete ({e!r} missing)") from None
+        if [c.name for c in cams] != [c.name for c in cfg.cameras]:
+            raise UnreadableFileError(f"{paths.cameras}: cameras do not match {mpath}")
+        ds = cls(root, cfg, cams,
+                 Trajectory(arr("world_from_board_rvec"), arr("world_from_board_tvec")),
+                 arr("object_points"), arr("ids"),
+                 GroundTruth(arr("image_points"), arr("visible")), manifest)
+        ds.check_images()
+        return ds

@@ -52,6 +52,7 @@ import cv2
 import numpy as np
 
 from .patterns import AsymmetricCircles, Charuco, Checkerboard, Pattern, SymmetricCircles
+from .rundir import write_npz
 
 SEARCH_MAX_SIDE = 1600
 CHARUCO_MIN_SEARCH_SIDE = 1920  # markers of small images are searched on an enlarged copy
@@ -502,12 +503,13 @@ class CameraDetections:
         """Write a .npz (plain arrays, no pickles) and return its path."""
         path = Path(path)
         frames = sorted(self.errors)
-        np.savez(path, camera=self.camera, pattern=self.pattern, method=self.method,
-                 points=self.points, found=self.found, ids=self.ids,
-                 error_frames=np.array(frames, dtype=np.int64),
-                 error_messages=np.array([self.errors[f] for f in frames], dtype=str),
-                 opencv_version=cv2.__version__)
-        return path if path.suffix == ".npz" else path.with_name(path.name + ".npz")
+        path = path if path.suffix == ".npz" else path.with_name(path.name + ".npz")
+        write_npz(path, camera=self.camera, pattern=self.pattern, method=self.method,
+                  points=self.points, found=self.found, ids=self.ids,
+                  error_frames=np.array(frames, dtype=np.int64),
+                  error_messages=np.array([self.errors[f] for f in frames], dtype=str),
+                  opencv_version=cv2.__version__)
+        return path
 
     @classmethod
     def load(cls, path: str | Path) -> "CameraDetections":

@@ -1,29 +1,32 @@
 """Detect, calibrate every camera of a dataset with every method, and score against the truth.
 
-This is the stage behind ``stereo-bench calibrate``. It writes, under the output directory::
+This is the stage behind ``stereo-bench calibrate``. It writes, in a trial's folder (paths built by
+``rundir.TrialPaths``)::
 
-    detections/<camera>.npz, timing.json    detections (reused when complete)
+    detections/<camera>.npz, done.json      detections; done.json marks them complete and holds
+                                            their fingerprint and the detection's wall time
     calibrations/<method>/<camera>.json     the estimate (SynthCal JSON) ...
     calibrations/<method>/<camera>.yaml     ... and OpenCV FileStorage YAML
     calibrations/<method>/<camera>_views.npz  per-view cam_from_board (rvecs, tvecs, view_ids)
-    metrics.json                            every number (see ``evaluate_dataset``)
+    metrics.json                            every number (see ``evaluate_dataset``); it marks
+                                            the stage complete for its fingerprint
 
 A camera or method that fails is recorded with its error message; the others go on.
 """
 
 from __future__ import annotations
 
-import json
 import time
-from pathlib import Path
 
 import numpy as np
 
 from .calibrate import CalibrationResult, Observations, get_calibrator
 from .camera import Camera, matrix_to_rodrigues
 from .dataset import Dataset
-from .detect import CameraDetections, detect_dataset, detection_errors
-from .metrics import parameter_errors, parameter_rmse, pose_errors, projection_difference, rpe_rms
+from .detect import CameraDetections, detect_dataset, detection_errors, resolve_method
+from .metrics import (parameter_errors, parameter_rmse, pose_errors, projection_difference,
+                      rpe_rms, validity)
+from .rundir import Notes, TrialPaths, fingerprint, reusable, strict, write_json, write_npz
 
 MIN_POINTS = 8  # fewer detected corners than this hardly constrain a view
 MIN_SPREAD = 0.2  # the board points' minor extent relative to their major one
@@ -56,23 +59,32 @@ def observations(det: CameraDetections, object_points: np.ndarray,
     return Observations(obj, img, camera.size, ids, camera.name), dropped
 
 
-def load_or_detect(ds: Dataset, out: Path, progress=None) -> tuple[list[CameraDetections], float]:
-    """Detections of every camera, read from ``out/detections`` when complete there, and the
-    time the detection took when it ran (kept beside them, so reuse does not hide it)."""
-    folder = out / "detections"
-    paths = [folder / f"{cam.name}.npz" for cam in ds.cameras]
-    timing = folder / "timing.json"
-    if all(p.is_file() for p in paths) and timing.is_file():
-        return ([CameraDetections.load(p) for p in paths],
-                json.loads(timing.read_text())["detect_s"])
+def detections_fingerprint(ds: Dataset) -> str:
+    return fingerprint("detections", ds.fingerprint, resolve_method(ds.pattern, None))
+
+
+def load_or_detect(ds: Dataset, trial: TrialPaths, progress=None,
+                   notes: Notes | None = None) -> tuple[list[CameraDetections], float, str]:
+    """Detections of every camera, reused when ``trial``'s marker was written for this dataset,
+    the time the detection took when it ran (kept in the marker, so reuse does not hide it),
+    and the detections' fingerprint."""
+    fp = detections_fingerprint(ds)
+    marker = reusable(trial.detections_done, fp, notes, "detection")
+    if marker is not None:
+        try:
+            return ([CameraDetections.load(trial.detection(c.name)) for c in ds.cameras],
+                    float(marker["detect_s"]), fp)
+        except (ValueError, KeyError, TypeError) as e:
+            if notes:
+                notes.add(f"{trial.detections}: {e}; redoing the detection stage")
+    trial.detections_done.unlink(missing_ok=True)
     start = time.perf_counter()
     dets = detect_dataset(ds, progress=progress)
     seconds = time.perf_counter() - start
-    folder.mkdir(parents=True, exist_ok=True)
-    for det, p in zip(dets, paths):
-        det.save(p)
-    timing.write_text(json.dumps({"detect_s": seconds}))  # written last: marks completion
-    return dets, seconds
+    for det in dets:
+        det.save(trial.detection(det.camera))
+    write_json(trial.detections_done, {"fingerprint": fp, "detect_s": seconds})  # marks completion
+    return dets, seconds, fp
 
 
 def score(result: CalibrationResult, obs: Observations, truth: Camera,
@@ -88,50 +100,50 @@ def score(result: CalibrationResult, obs: Observations, truth: Camera,
         "paper_rmse": parameter_rmse(est, truth),
         "parameter_errors": parameter_errors(est, truth),
         "projection_difference": projection_difference(est, truth),
+        "validity": validity(est),
         "board_pose": {k: v for k, v in poses.items() if not isinstance(v, list)},
         "views": obs.n_views,
         "points": obs.n_points,
-        "log": jsonable(result.log),
+        "log": strict(result.log),
     }
 
 
-def jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return jsonable(x.tolist())
-    if isinstance(x, (np.floating, np.integer, np.bool_)):
-        return x.item()
-    return x
-
-
-def save_calibration(result: CalibrationResult, obs: Observations, folder: Path) -> None:
-    folder.mkdir(parents=True, exist_ok=True)
+def save_calibration(result: CalibrationResult, obs: Observations, trial: TrialPaths,
+                     method: str) -> None:
     name = result.camera.name
-    result.camera.save_json(folder / f"{name}.json")
-    result.camera.save_opencv_yaml(folder / f"{name}.yaml")
-    np.savez(folder / f"{name}_views.npz", rvecs=result.rvecs, tvecs=result.tvecs,
-             view_ids=np.array(obs.view_ids))
+    result.camera.save_json(trial.calibration(method, name))
+    result.camera.save_opencv_yaml(trial.calibration_yaml(method, name))
+    write_npz(trial.views(method, name), rvecs=result.rvecs, tvecs=result.tvecs,
+              view_ids=np.array(obs.view_ids))
 
 
-def evaluate_dataset(ds: Dataset, methods: list[str], out: Path, progress=None) -> dict:
-    """Detect, calibrate with each method, score; write everything under ``out``.
+def metrics_fingerprint(detections_fp: str, methods: list[str]) -> str:
+    return fingerprint("metrics", detections_fp, list(methods))
 
-    Returns the dict written to ``out/metrics.json``: ``detection[camera]`` (rate and error
-    against the truth), ``calibration[method][camera]`` (see ``score``, or ``{"error": ...}``).
+
+def evaluate_dataset(ds: Dataset, methods: list[str], trial: TrialPaths, progress=None,
+                     notes: Notes | None = None) -> dict:
+    """Detect, calibrate with each method, score; write everything under ``trial``.
+
+    Returns the dict written to ``trial.metrics``: ``detection[camera]`` (rate and error
+    against the truth), ``calibration[method][camera]`` (see ``score``, or ``{"error": ...}``),
+    ``fingerprint`` (of the detections and the methods: what a rerun must match to reuse it).
     """
-    out = Path(out)
     for m in methods:  # fail early on a typo, before any work
         get_calibrator(m)
-    dets, detect_s = load_or_detect(ds, out, progress)
+    dets, detect_s, det_fp = load_or_detect(ds, trial, progress, notes)
     start = time.perf_counter()
     gt = ds.ground_truth
     rig = ds.rig()
-    report = {"dataset": str(ds.root), "name": ds.config.name, "seed": ds.config.seed,
+    inside = ds.root.resolve().is_relative_to(trial.root.resolve())
+    report = {"fingerprint": metrics_fingerprint(det_fp, methods),
+              # Relative inside the trial, so that two runs into different folders agree.
+              "dataset": (ds.root.resolve().relative_to(trial.root.resolve()).as_posix()
+                          if inside else str(ds.root)),
+              "name": ds.config.name, "seed": ds.config.seed,
               "pattern": ds.config.pattern.kind, "environment": ds.config.environment.kind,
               "cameras": [c.name for c in ds.cameras], "methods": methods,
+              "warnings": ds.warnings,
               "detection": {}, "calibration": {m: {} for m in methods},
               "timing": {"detect_s": detect_s}}
     for c, (cam, det) in enumerate(zip(ds.cameras, dets)):
@@ -150,12 +162,12 @@ def evaluate_dataset(ds: Dataset, methods: list[str], out: Path, progress=None) 
                 result = get_calibrator(m).calibrate(obs)
                 result = CalibrationResult(result.camera.with_params(name=cam.name),
                                            result.rvecs, result.tvecs, result.log)
-                save_calibration(result, obs, out / "calibrations" / m)
+                save_calibration(result, obs, trial, m)
                 entry = score(result, obs, truth, rig.cam_from_board(cam))
             except (ValueError, np.linalg.LinAlgError, RuntimeError) as e:
                 entry = {"error": f"{type(e).__name__}: {e}"}
             entry["wall_time_s"] = time.perf_counter() - t0
             report["calibration"][m][cam.name] = entry
     report["timing"]["calibrate_s"] = time.perf_counter() - start
-    (out / "metrics.json").write_text(json.dumps(jsonable(report), indent=2))
-    return report
+    write_json(trial.metrics, report)
+    return strict(report)

@@ -11,6 +11,7 @@
   grid covering the image (px) -- the error a user of the estimate sees. Reported as is, and after
   the best-fit rotation between the two camera frames (as mrcal's projection_diff does), which
   removes what a change of extrinsics would absorb.
+* ``validity``: where an estimate has one ray per pixel (a fit can fold inside the image).
 * ``pose_errors``: board pose errors per view, rotation (deg) and translation (mm).
 """
 
@@ -20,7 +21,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from .camera import (DIST_NAMES, INTRINSIC_NAMES, Camera, geodesic_distance, project_points,
-                     project_with_jacobians, rodrigues_to_matrix)
+                     project_with_jacobians, radial_fold_radius, rodrigues_to_matrix)
 
 PAPER_PARAMS = ("fx", "fy", "cx", "cy") + DIST_NAMES
 
@@ -59,10 +60,33 @@ def _grid(camera: Camera, n: tuple[int, int]) -> np.ndarray:
 def projection_difference_map(estimate: Camera, truth: Camera,
                               grid: tuple[int, int] = (160, 120)) -> np.ndarray:
     """(rows, columns) px: per grid pixel, how far the estimate projects the true camera's ray
-    (intrinsics only, no rotation compensation); the map behind ``projection_difference``."""
+    (intrinsics only, no rotation compensation); the map behind ``projection_difference``, NaN
+    where the estimate is not valid."""
     uv = _grid(truth, grid)
-    diff = estimate.normalized_to_pixels(truth.unproject(uv)) - uv
-    return np.linalg.norm(diff, axis=1).reshape(grid[1], grid[0])
+    xy = truth.unproject(uv)
+    diff = np.linalg.norm(estimate.normalized_to_pixels(xy) - uv, axis=1)
+    diff[~_valid(estimate, uv, xy)] = np.nan  # where the estimate is invalid (see below)
+    return diff.reshape(grid[1], grid[0])
+
+
+def _valid(estimate: Camera, uv: np.ndarray, true_rays: np.ndarray) -> np.ndarray:
+    """Pixels whose true ray lies inside the estimate's radial fold and that have one ray
+    through the estimate: where comparing the two projections means something."""
+    return ((np.linalg.norm(true_rays, axis=-1) < radial_fold_radius(estimate.dist))
+            & estimate.invertible(uv))
+
+
+def validity(estimate: Camera, grid: tuple[int, int] = (64, 48)) -> dict:
+    """Where an estimate can be used over its image: the fraction of a grid of pixels (corner to
+    corner) that have exactly one ray through it, and the normalized radius where its radial
+    distortion folds or has a pole (None when it has neither within 87 degrees). A fitted
+    high-order model can fold inside the image (TRAPS.md); triangulation and projection through
+    it are meaningless there."""
+    uv = _grid(estimate, grid)
+    ok = estimate.invertible(uv)
+    fold = radial_fold_radius(estimate.dist)
+    return {"valid_fraction": float(ok.mean()), "fold_radius": fold if np.isfinite(fold) else None,
+            "usable": bool(ok.all())}
 
 
 def projection_difference(estimate: Camera, truth: Camera, grid: tuple[int, int] = (64, 48),
@@ -75,13 +99,28 @@ def projection_difference(estimate: Camera, truth: Camera, grid: tuple[int, int]
     calibration has its own frame); ``rotation``, a Rodrigues vector estimate_cam_from_true_cam
     (e.g. from a rig calibration), rotates the rays in between.
 
+    The statistics cover only the pixels where the estimate is valid: the true ray lies inside
+    the estimate's radial fold, and the pixel has one ray through the estimate. Beyond its fold
+    (or pole) an estimate's projection is not a small error but a different branch of its
+    polynomial (thousands of px near a pole), so including those pixels made the mean depend on
+    how close the grid came to the pole. ``points_left_out`` / ``fraction_left_out`` say how much
+    of the grid was excluded; with all of it excluded the statistics are None.
+
     ``mean_px`` / ``max_px``: the frames as given.
     ``rotation_compensated_mean_px`` / ``..._max_px``: after the extra rotation (``rotation_deg``)
     of the rays that minimizes the squared pixel differences -- what remains when a rotation of
     the camera frame, which extrinsics would absorb, is explained away (as mrcal's projection_diff).
     """
     uv = _grid(truth, grid)
-    rays = np.column_stack([truth.unproject(uv), np.ones(len(uv))])
+    xy = truth.unproject(uv)
+    valid = _valid(estimate, uv, xy)
+    left_out = {"points_left_out": int((~valid).sum()),
+                "fraction_left_out": float((~valid).mean())}
+    if not valid.any():
+        return {"mean_px": None, "max_px": None, "rotation_compensated_mean_px": None,
+                "rotation_compensated_max_px": None, "rotation_deg": None, **left_out}
+    uv = uv[valid]
+    rays = np.column_stack([xy[valid], np.ones(len(uv))])
     if rotation is not None:
         rays = rays @ rodrigues_to_matrix(rotation).T
     zero = np.zeros(3)
@@ -102,6 +141,7 @@ def projection_difference(estimate: Camera, truth: Camera, grid: tuple[int, int]
         "rotation_compensated_mean_px": float(rotated.mean()),
         "rotation_compensated_max_px": float(rotated.max()),
         "rotation_deg": float(np.degrees(np.linalg.norm(fit.x))),
+        **left_out,
     }
 
 

@@ -1,21 +1,16 @@
 """`stereo-bench RIG.yaml`: render -> detect -> calibrate -> rig calibration -> triangulate ->
 metrics, over trials, with every stage saved so a rerun reuses what is complete.
 
-Run directory::
-
-    RUN/trials/seed_<s>/dataset/              the rendered dataset (manifest written last)
-    RUN/trials/seed_<s>/detections/, calibrations/, metrics.json   (see evaluate.py)
-    RUN/trials/seed_<s>/rig/<method>.json     the estimated rig (cameras with cam_from_world =
-                                              cam_from_cam0) and its RMSE_cal and rig errors
-    RUN/results.json, RUN/report.md, RUN/plots/*.png
-
-A stage is complete when its last file exists (dataset: manifest.json; calibration:
-metrics.json; rig: rig/<method>.json), so an interrupted run loses at most the stage in flight.
+The run directory's layout is owned by ``rundir`` (RunPaths, TrialPaths). A stage is reused only
+when its marker (dataset: manifest.json; detection: detections/done.json; calibration:
+metrics.json; rig: rig/<method>.json) is readable and carries the fingerprint of exactly what the
+stage depends on now; otherwise it is redone and the run's notes say which and why. So an edited
+rig file rerun into the same folder gives the new configuration's results, and an interrupted or
+torn stage is redone. ``run`` holds the run directory's lock: a second run into it is refused.
 """
 
 from __future__ import annotations
 
-import json
 import multiprocessing
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -26,18 +21,16 @@ import numpy as np
 
 from .camera import Camera
 from .config import RigConfig
-from .dataset import Dataset, write_dataset
+from .dataset import Dataset, dataset_fingerprint, write_dataset
 from .detect import CameraDetections
-from .evaluate import jsonable, evaluate_dataset
+from .evaluate import detections_fingerprint, evaluate_dataset, metrics_fingerprint
+from .rundir import (Notes, RunPaths, TrialPaths, UnreadableFileError, fingerprint, locked,
+                     read_json, reusable, strict, write_json)
 from .stereo import calibrate_rig, rig_errors
 from .triangulate import triangulate
 
 
-def trial_dir(out: Path, seed: int) -> Path:
-    return Path(out) / "trials" / f"seed_{seed}"
-
-
-def rig_calibration(ds: Dataset, tdir: Path, method: str) -> dict:
+def rig_calibration(ds: Dataset, trial: TrialPaths, method: str) -> dict:
     """Calibrate the rig from one method's per-camera estimates and score it against the truth.
 
     RMSE_cal (paper Sec. 4.2): the board's feature points triangulated in every frame through the
@@ -47,11 +40,10 @@ def rig_calibration(ds: Dataset, tdir: Path, method: str) -> dict:
     """
     cams, rv, tv = [], [], []
     F = ds.frames
-    dets = [CameraDetections.load(tdir / "detections" / f"{c.name}.npz") for c in ds.cameras]
+    dets = [CameraDetections.load(trial.detection(c.name)) for c in ds.cameras]
     for cam in ds.cameras:
-        folder = tdir / "calibrations" / method
-        cams.append(Camera.load_json(folder / f"{cam.name}.json"))
-        with np.load(folder / f"{cam.name}_views.npz") as z:
+        cams.append(Camera.load_json(trial.calibration(method, cam.name)))
+        with np.load(trial.views(method, cam.name)) as z:
             r, t = np.full((F, 3), np.nan), np.full((F, 3), np.nan)
             r[z["view_ids"]], t[z["view_ids"]] = z["rvecs"], z["tvecs"]
         rv.append(r)
@@ -90,45 +82,65 @@ def rig_calibration(ds: Dataset, tdir: Path, method: str) -> dict:
     }
 
 
+def _dataset(cfg: RigConfig, trial: TrialPaths, dataset_dir: Path | None, progress,
+             notes: Notes) -> Dataset:
+    """The trial's dataset: an existing one (``dataset_dir``), or the trial's own, reused when
+    it was rendered from this configuration and rendered again otherwise."""
+    if dataset_dir is not None:
+        return Dataset.load(dataset_dir)
+    paths = trial.dataset
+    try:
+        ds = Dataset.load(paths.root)
+        if ds.fingerprint == dataset_fingerprint(cfg):
+            return ds
+        notes.add(f"{paths.manifest}: rendered from another configuration; rendering again")
+    except FileNotFoundError:
+        pass
+    except UnreadableFileError as e:
+        notes.add(f"{e}; rendering again")
+    return write_dataset(cfg, paths.root, progress)
+
+
 def run_trial(cfg: RigConfig, out: Path, methods: list[str], progress=None,
               dataset_dir: Path | None = None, with_rig: bool = True) -> dict:
-    """One trial (one seed): every stage, each reused when complete on disk.
+    """One trial (one seed): every stage, each reused when its marker matches (module docstring).
 
     ``dataset_dir``: an existing dataset to use instead of rendering into the trial directory.
+    The returned report (the trial's metrics.json plus ``rig``, ``timing`` and ``notes``) says in
+    ``notes`` which stages were redone and why, and carries the dataset's warnings.
     """
-    tdir = trial_dir(out, cfg.seed)
-    dataset_dir = Path(dataset_dir or tdir / "dataset")
-    try:
-        ds = Dataset.load(dataset_dir)
-    except FileNotFoundError:
-        ds = write_dataset(cfg, dataset_dir, progress)
-    cached = tdir / "metrics.json"
-    report = json.loads(cached.read_text()) if cached.is_file() else None
-    if report is None or report.get("methods") != methods:
-        report = evaluate_dataset(ds, methods, tdir, progress)
+    trial = RunPaths(Path(out)).trial(cfg.seed)
+    notes = Notes()
+    ds = _dataset(cfg, trial, dataset_dir, progress, notes)
+    expected = metrics_fingerprint(detections_fingerprint(ds), methods)
+    report = reusable(trial.metrics, expected, notes, "calibration")
+    if report is None:
+        report = evaluate_dataset(ds, methods, trial, progress, notes)
     report["rig"] = {}
     if with_rig and len(ds.cameras) >= 2:
-        (tdir / "rig").mkdir(exist_ok=True)
         for m in methods:
-            path = tdir / "rig" / f"{m}.json"
-            if path.is_file():
-                report["rig"][m] = json.loads(path.read_text())
+            rig_fp = fingerprint("rig", report["fingerprint"], m)
+            entry = reusable(trial.rig(m), rig_fp, notes, f"rig calibration of {m}")
+            if entry is not None:
+                report["rig"][m] = entry
                 continue
             failed = [e["error"] for e in report["calibration"][m].values() if "error" in e]
             t0 = time.perf_counter()
             try:
                 if failed:
                     raise ValueError(f"a camera's calibration failed: {failed[0]}")
-                entry = jsonable(rig_calibration(ds, tdir, m))
+                entry = strict(rig_calibration(ds, trial, m))
             except (ValueError, np.linalg.LinAlgError, RuntimeError, OSError) as e:
                 entry = {"method": m, "error": f"{type(e).__name__}: {e}"}
+            entry["fingerprint"] = rig_fp
             entry["wall_time_s"] = time.perf_counter() - t0
-            path.write_text(json.dumps(entry, indent=2))
-            report["rig"][m] = entry
+            write_json(trial.rig(m), entry)
+            report["rig"][m] = strict(entry)
     # Stage times as measured when each stage ran (reused stages keep their original times).
     report["timing"] = {"render_s": ds.render_time_s, **report["timing"],
                         "rig_s": sum(e["wall_time_s"] for e in report["rig"].values())}
-    return report
+    report["notes"] = notes.items
+    return strict(report)
 
 
 def _run_trial_job(args):
@@ -140,27 +152,29 @@ def _run_trial_job(args):
 def run(cfg: RigConfig, out: Path, methods: list[str], trials: int = 1, workers: int = 1,
         progress=None, first_dataset: Path | None = None, with_rig: bool = True) -> list[dict]:
     """All trials (seeds cfg.seed, cfg.seed + 1, ...); with workers > 1 in spawned processes
-    (forking after OpenCV started its thread pool can deadlock: TRAPS.md).
+    (forking after OpenCV started its thread pool can deadlock: TRAPS.md). Holds the run
+    directory's lock throughout (RunLockedError if another run holds it).
 
     ``first_dataset``: an existing dataset of ``cfg`` used as the first trial.
     """
     jobs = [(cfg.model_copy(update={"seed": cfg.seed + i}).model_dump(mode="json"), str(out),
              methods, first_dataset if i == 0 else None, with_rig) for i in range(trials)]
-    if workers <= 1 or trials == 1:
-        results = []
-        for i, job in enumerate(jobs):
-            results.append(_run_trial_job(job))
-            if progress:
-                progress(i + 1, trials)
+    with locked(out):
+        if workers <= 1 or trials == 1:
+            results = []
+            for i, job in enumerate(jobs):
+                results.append(_run_trial_job(job))
+                if progress:
+                    progress(i + 1, trials)
+            return results
+        results = [None] * trials
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = {pool.submit(_run_trial_job, j): i for i, j in enumerate(jobs)}
+            for n, fut in enumerate(as_completed(futures), 1):
+                results[futures[fut]] = fut.result()
+                if progress:
+                    progress(n, trials)
         return results
-    results = [None] * trials
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = {pool.submit(_run_trial_job, j): i for i, j in enumerate(jobs)}
-        for n, fut in enumerate(as_completed(futures), 1):
-            results[futures[fut]] = fut.result()
-            if progress:
-                progress(n, trials)
-    return results
 
 
 @dataclass(frozen=True, eq=False)
@@ -174,23 +188,27 @@ class Trial:
 
 
 def load_run(run_dir) -> list[Trial]:
-    """The trials of a run directory written by ``stereo-bench RIG.yaml --out RUN_DIR``."""
-    root = Path(run_dir) / "trials"
-    if not root.is_dir():
-        raise FileNotFoundError(f"{root}: not found; is {run_dir} a run directory written by "
-                                f"`stereo-bench RIG.yaml --out {run_dir}`?")
+    """The trials of a run directory written by ``stereo-bench RIG.yaml --out RUN_DIR``; a
+    trial whose dataset is incomplete is skipped, an unreadable rig file is an error naming it."""
+    run = RunPaths(Path(run_dir))
+    if not run.trials.is_dir():
+        raise FileNotFoundError(f"{run.trials}: not found; is {run_dir} a run directory written "
+                                f"by `stereo-bench RIG.yaml --out {run_dir}`?")
     trials = []
-    for tdir in sorted(root.glob("seed_*"), key=lambda p: int(p.name.split("_")[1])):
-        cams_file = tdir / "dataset" / "ground_truth" / "cameras.json"
+    for seed in run.trial_seeds():
+        trial = run.trial(seed)
+        cams_file = trial.dataset.cameras
         if not cams_file.is_file():
-            continue  # an interrupted trial
-        truth = [Camera.from_dict(d, str(cams_file)) for d in json.loads(cams_file.read_text())]
+            continue  # an interrupted trial (the true cameras are all pose-eval needs of it)
+        truth = [Camera.from_dict(d, str(cams_file)) for d in read_json(cams_file)]
         rigs = {}
-        for path in sorted((tdir / "rig").glob("*.json")):
-            entry = json.loads(path.read_text())
+        for path in sorted(trial.rigs.glob("*.json")):
+            entry = read_json(path)
+            if not isinstance(entry, dict) or "method" not in entry:
+                raise UnreadableFileError(f"{path}: not a rig calibration written by stereo-bench")
             rigs[entry["method"]] = entry["error"] if "error" in entry else [
                 Camera.from_dict(d, str(path)) for d in entry["cameras"]]
-        trials.append(Trial(int(tdir.name.split("_")[1]), truth, rigs))
+        trials.append(Trial(seed, truth, rigs))
     if not trials:
-        raise FileNotFoundError(f"{root}: no complete trial")
+        raise FileNotFoundError(f"{run.trials}: no complete trial")
     return trials

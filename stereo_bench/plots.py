@@ -22,7 +22,7 @@ from .camera import Camera, project_points  # noqa: E402
 from .dataset import Dataset  # noqa: E402
 from .detect import CameraDetections  # noqa: E402
 from .metrics import projection_difference_map  # noqa: E402
-from .pipeline import trial_dir  # noqa: E402
+from .rundir import RunPaths, TrialPaths  # noqa: E402
 
 
 def _bars(ax, agg_rows: dict, column: str, title: str) -> None:
@@ -55,16 +55,15 @@ def plot_metrics(agg: dict, path: Path) -> Path:
     return path
 
 
-def residuals(tdir: Path, ds: Dataset, method: str) -> np.ndarray:
+def residuals(trial: TrialPaths, ds: Dataset, method: str) -> np.ndarray:
     """Reprojection residual norms (px) of one method over all cameras and views of a trial."""
     out = []
     for cam in ds.cameras:
-        folder = tdir / "calibrations" / method
-        if not (folder / f"{cam.name}.json").is_file():
+        if not trial.calibration(method, cam.name).is_file():
             continue
-        est = Camera.load_json(folder / f"{cam.name}.json")
-        det = CameraDetections.load(tdir / "detections" / f"{cam.name}.npz")
-        with np.load(folder / f"{cam.name}_views.npz") as z:
+        est = Camera.load_json(trial.calibration(method, cam.name))
+        det = CameraDetections.load(trial.detection(cam.name))
+        with np.load(trial.views(method, cam.name)) as z:
             for f, r, t in zip(z["view_ids"], z["rvecs"], z["tvecs"]):
                 ok = np.isfinite(det.points[f]).all(1)
                 uv = project_points(ds.object_points[ok], est.intrinsics, est.dist, r, t)
@@ -72,10 +71,10 @@ def residuals(tdir: Path, ds: Dataset, method: str) -> np.ndarray:
     return np.concatenate(out) if out else np.zeros(0)
 
 
-def plot_residuals(tdir: Path, ds: Dataset, methods: list[str], path: Path) -> Path:
+def plot_residuals(trial: TrialPaths, ds: Dataset, methods: list[str], path: Path) -> Path:
     fig, ax = plt.subplots(figsize=(6, 3.6))
     for m in methods:
-        r = residuals(tdir, ds, m)
+        r = residuals(trial, ds, m)
         if len(r):
             ax.hist(r, bins=np.geomspace(max(r.min(), 1e-4), r.max() + 1e-9, 60),
                     histtype="step", label=f"{m} (RMS {np.sqrt(np.mean(r**2)):.3f})")
@@ -122,11 +121,12 @@ def plot_trajectory(ds: Dataset, path: Path) -> Path:
     return path
 
 
-def plot_projection_maps(tdir: Path, ds: Dataset, methods: list[str], folder: Path) -> list[Path]:
+def plot_projection_maps(trial: TrialPaths, ds: Dataset, methods: list[str],
+                         folder: Path) -> list[Path]:
     paths = []
     for cam in ds.cameras:
         truth = cam.with_params(rvec=np.zeros(3), tvec=np.zeros(3))
-        ests = {m: tdir / "calibrations" / m / f"{cam.name}.json" for m in methods}
+        ests = {m: trial.calibration(m, cam.name) for m in methods}
         ests = {m: Camera.load_json(p) for m, p in ests.items() if p.is_file()}
         if not ests:
             continue
@@ -134,10 +134,17 @@ def plot_projection_maps(tdir: Path, ds: Dataset, methods: list[str], folder: Pa
         for ax, (m, est) in zip(axes[0], ests.items()):
             diff = projection_difference_map(est, truth)
             # Colour scale to the 99th percentile: a few corner pixels where an estimate's model
-            # breaks down (Tsai's fold) would otherwise leave the rest of the map black.
-            im = ax.imshow(diff, extent=(0, cam.width - 1, cam.height - 1, 0), cmap="magma",
-                           vmax=np.percentile(diff, 99))
-            ax.set_title(f"{m}: mean {diff.mean():.3g}, max {diff.max():.3g} px", fontsize=8)
+            # breaks down would otherwise leave the rest of the map black. Grey: where the
+            # estimate is not valid (it folds or has a pole; left out of the statistics).
+            cmap = plt.get_cmap("magma").with_extremes(bad="0.6")
+            valid = np.isfinite(diff)
+            vmax = np.percentile(diff[valid], 99) if valid.any() else 1.0
+            im = ax.imshow(diff, extent=(0, cam.width - 1, cam.height - 1, 0), cmap=cmap,
+                           vmax=vmax)
+            note = "" if valid.all() else f", {1 - valid.mean():.1%} invalid (grey)"
+            title = (f"{m}: mean {np.nanmean(diff):.3g}, max {np.nanmax(diff):.3g} px{note}"
+                     if valid.any() else f"{m}: invalid over the whole image")
+            ax.set_title(title, fontsize=8)
             ax.tick_params(labelsize=6)
             fig.colorbar(im, ax=ax, shrink=0.8).ax.tick_params(labelsize=6)
         fig.suptitle(f"{cam.name}: |estimate - truth| projection difference (px)", fontsize=9)
@@ -154,12 +161,12 @@ def plot_run(out: Path, trials: list[dict], agg: dict) -> list[Path]:
     folder = Path(out) / "plots"
     folder.mkdir(parents=True, exist_ok=True)
     first = trials[0]
-    tdir = trial_dir(out, first["seed"])
+    trial = RunPaths(Path(out)).trial(first["seed"])
     # The run's own copy, so that a run directory moved elsewhere still plots.
-    own = tdir / "dataset"
-    ds = Dataset.load(own if (own / "manifest.json").is_file() else first["dataset"])
+    own = trial.dataset
+    ds = Dataset.load(own.root if own.manifest.is_file() else first["dataset"])
     methods = first["methods"]
     return [plot_metrics(agg, folder / "metrics.png"),
-            plot_residuals(tdir, ds, methods, folder / "residuals.png"),
+            plot_residuals(trial, ds, methods, folder / "residuals.png"),
             plot_trajectory(ds, folder / "trajectory.png"),
-            *plot_projection_maps(tdir, ds, methods, folder)]
+            *plot_projection_maps(trial, ds, methods, folder)]

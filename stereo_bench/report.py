@@ -17,6 +17,7 @@ CALIBRATION_COLUMNS = [
     ("proj. diff mean px", ("projection_difference", "mean_px")),
     ("proj. diff max px", ("projection_difference", "max_px")),
     ("rot.-comp. diff mean px", ("projection_difference", "rotation_compensated_mean_px")),
+    ("valid image fraction", ("validity", "valid_fraction")),
     ("fx err px", ("parameter_errors", "fx")),
     ("fy err px", ("parameter_errors", "fy")),
     ("cx err px", ("parameter_errors", "cx")),
@@ -86,6 +87,8 @@ def aggregate(trials: list[dict]) -> dict:
             row = {title: summarize([_get(e, path) for e in entries])
                    for title, path in CALIBRATION_COLUMNS}
             row["failures"] = [e["error"] for e in entries if "error" in e]
+            row["not_valid_everywhere"] = sum(
+                1 for e in entries if e.get("validity", {}).get("usable") is False)
             agg["calibration"][m][cam] = row
     if first.get("rig"):
         agg["rig"] = {}
@@ -94,6 +97,8 @@ def aggregate(trials: list[dict]) -> dict:
             row = {title: summarize([_get(e, path) for e in entries]) for title, path in RIG_COLUMNS}
             row["failures"] = [e["error"] for e in entries if "error" in e]
             agg["rig"][m] = row
+    agg["warnings"] = sorted({w for t in trials for w in t.get("warnings", [])})
+    agg["notes"] = [n for t in trials for n in t.get("notes", [])]
     agg["timing"] = {k: summarize([t.get("timing", {}).get(k, math.nan) for t in trials])
                      for k in ("render_s", "detect_s", "calibrate_s", "rig_s")}
     return agg
@@ -122,12 +127,21 @@ def markdown(agg: dict, title: str) -> str:
               "user of the calibration sees.", "",
               "| camera | method | " + " | ".join(t for t, _ in CALIBRATION_COLUMNS) + " |",
               "|---|---|" + "---|" * len(CALIBRATION_COLUMNS)]
-    failures = []
+    failures, invalid = [], []
     for m, cams in agg["calibration"].items():
         for cam, row in cams.items():
-            lines.append(f"| {cam} | {m} | "
+            bad = row.get("not_valid_everywhere", 0)
+            mark = " (folds) †" if bad else ""
+            lines.append(f"| {cam} | {m}{mark} | "
                          + " | ".join(fmt(row[t]) for t, _ in CALIBRATION_COLUMNS) + " |")
             failures += [f"- {cam} / {m}: {msg}" for msg in row["failures"]]
+            if bad:
+                invalid.append(f"- {cam} / {m}: in {bad} of {agg['trials']} trial(s) the "
+                               f"estimate folds or has a pole inside the image (valid over "
+                               f"{fmt(row['valid image fraction'])} of it); its projection "
+                               f"difference covers only the valid part")
+    if invalid:
+        lines += ["", "† Estimates that cannot be used over the whole image:", ""] + invalid
     if "rig" in agg:
         lines += ["", "## Rig calibration and triangulation (layout of the paper's Table 4)", "",
                   "RMSE_cal: the board's feature points triangulated through each method's "
@@ -140,6 +154,10 @@ def markdown(agg: dict, title: str) -> str:
             failures += [f"- rig / {m}: {msg}" for msg in row["failures"]]
     if failures:
         lines += ["", "## Failures", ""] + failures
+    if agg.get("warnings"):
+        lines += ["", "## Warnings about the data", ""] + [f"- {w}" for w in agg["warnings"]]
+    if agg.get("notes"):
+        lines += ["", "## Stages redone in this run", ""] + [f"- {n}" for n in agg["notes"]]
     timing = agg.get("timing", {})
     if timing:
         lines += ["", "Stage times (s per trial): " + ", ".join(

@@ -81,6 +81,10 @@ def conical_spring(
     centres = np.stack([c.center for c in cameras])
     rig_centre = centres.mean(0)
     axis = np.stack([c.R[2] for c in cameras]).mean(0)
+    if np.linalg.norm(axis) < 0.3:
+        raise ValueError("cameras: their optical axes point in opposing directions (mean axis "
+                         f"length {np.linalg.norm(axis):.2f}); the conical spring is built along "
+                         "the rig's common viewing direction, which such a rig does not have")
     axis /= np.linalg.norm(axis)
     # Image "right" of the rig, orthogonal to the axis: keeps the board upright in the images.
     right = np.stack([c.R[0] for c in cameras]).mean(0)
@@ -185,8 +189,46 @@ class Rig:
             vis[c] = front & ahead & valid & inside
         return GroundTruth(pts, vis)
 
-    def frames_out_of_view(self, gt: GroundTruth | None = None) -> dict[str, list[int]]:
-        """Per camera, the frames in which part of the board is not seen."""
+    def coverage(self, gt: GroundTruth | None = None) -> dict[str, dict]:
+        """Per camera, how the board is seen: ``frames_in_view`` (some feature visible),
+        ``frames_partly_out`` (some but not all visible: the frame indices), and ``span_px``,
+        the largest extent (bounding-box diagonal) of the visible features over all frames."""
         gt = gt or self.ground_truth()
-        return {cam.name: np.flatnonzero(~gt.visible[c].all(axis=1)).tolist()
-                for c, cam in enumerate(self.cameras)}
+        out = {}
+        for c, cam in enumerate(self.cameras):
+            vis = gt.visible[c]
+            some, every = vis.any(axis=1), vis.all(axis=1)
+            span = 0.0
+            for f in np.flatnonzero(some):
+                p = gt.points[c, f][vis[f]]
+                span = max(span, float(np.linalg.norm(p.max(0) - p.min(0))))
+            out[cam.name] = {"frames_in_view": int(some.sum()),
+                             "frames_partly_out": np.flatnonzero(some & ~every).tolist(),
+                             "span_px": span}
+        return out
+
+
+#: Below this extent in an image, no detector finds a board (a 9x12 checkerboard's squares would
+#: be 2 px wide); a camera that never sees it larger cannot be calibrated.
+MIN_BOARD_SPAN_PX = 20.0
+
+
+def coverage_warnings(coverage: dict[str, dict], frames: int) -> tuple[list[str], list[str]]:
+    """(warnings, unusable cameras) for a dataset's coverage (``Rig.coverage``)."""
+    warnings, unusable = [], []
+    for name, c in coverage.items():
+        if c["frames_in_view"] == 0:
+            warnings.append(f"camera {name!r}: the board is never in view")
+            unusable.append(name)
+        elif c["span_px"] < MIN_BOARD_SPAN_PX:
+            warnings.append(f"camera {name!r}: the board spans at most {c['span_px']:.1f} px "
+                            f"(below {MIN_BOARD_SPAN_PX:.0f} px no detector finds it): check "
+                            f"the camera's focal length and trajectory.depth_mm")
+            unusable.append(name)
+        elif c["frames_partly_out"]:
+            warnings.append(f"camera {name!r}: the board is partly out of view in "
+                            f"{len(c['frames_partly_out'])} of {frames} frames")
+        if c["frames_in_view"] and c["frames_in_view"] < frames:
+            warnings.append(f"camera {name!r}: the board is out of view in "
+                            f"{frames - c['frames_in_view']} of {frames} frames")
+    return warnings, unusable

@@ -17,46 +17,61 @@ and OUT/sweep.md hold one table for the whole grid, with the wall time and the t
 
 from __future__ import annotations
 
-import json
 import multiprocessing
 import time
 import traceback
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
+from typing import Literal
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from .config import ConfigError, RigConfig, load_rig
+from .config import ConfigError, Int, Name, RigConfig, load_rig, load_yaml, parse_rig
 from .report import aggregate, fmt, markdown
+from .rundir import RunPaths, locked, write_json, write_text
 
 
 class GridConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
-    name: str = "grid"
-    rigs: list[str] = Field(min_length=1)
-    patterns: list[str] = Field(min_length=1)
-    environments: list[str] = ["clean"]
-    methods: list[str] = ["zhang", "tsai", "bouguet", "opencv"]
-    trials: int = Field(1, ge=1)
-    frames: int | None = Field(None, gt=0)
+    name: Name = "grid"
+    rigs: list[str] = Field(min_length=1, max_length=100)
+    patterns: list[Literal["checkerboard", "symmetric_circles", "asymmetric_circles",
+                           "charuco"]] = Field(min_length=1)
+    environments: list[Literal["clean", "noisy"]] = Field(["clean"], min_length=1)
+    methods: list[str] = Field(["zhang", "tsai", "bouguet", "opencv"], min_length=1)
+    trials: Int = Field(1, ge=1, le=1000)
+    frames: Int | None = Field(None, gt=0, le=10_000)
+
+    @field_validator("methods")
+    @classmethod
+    def _known(cls, v):
+        from .calibrate import available_methods
+
+        unknown = [m for m in v if m not in available_methods()]
+        if unknown:
+            raise ValueError(f"unknown {unknown}; available: {', '.join(available_methods())}")
+        if len(set(v)) != len(v):
+            raise ValueError(f"listed twice: {sorted({m for m in v if v.count(m) > 1})}")
+        return v
 
 
 def load_grid(path) -> tuple[GridConfig, list[RigConfig]]:
-    """The grid and its configurations (each rig file crossed with patterns and environments)."""
+    """The grid and its configurations (each rig file crossed with patterns and environments),
+    all validated before anything runs; configuration names must be unique."""
     path = Path(path)
+    data = load_yaml(path, "grid file")
     try:
-        grid = GridConfig.model_validate(yaml.safe_load(path.read_text()))
-    except OSError as e:
-        raise ConfigError(f"{path}: cannot read grid file ({e.strerror})") from None
-    except (yaml.YAMLError, ValidationError) as e:
-        raise ConfigError(f"{path}: invalid grid file: {e}") from None
+        grid = GridConfig.model_validate(data if isinstance(data, dict) else {"": data})
+    except ValidationError as e:
+        fields = "; ".join(f"{'.'.join(map(str, x['loc'])) or '(top level)'}: "
+                           f"{x['msg'].removeprefix('Value error, ')}" for x in e.errors())
+        raise ConfigError(f"{path}: invalid grid file: {fields}") from None
     configs = []
-    for rig_file in grid.rigs:
+    for i, rig_file in enumerate(grid.rigs):
         try:
-            base = load_rig(path.parent / rig_file).model_dump()
+            base = load_rig(path.parent / rig_file).model_dump(mode="json")
         except ConfigError as e:
-            raise ConfigError(f"{path}: rigs: {e}") from None
+            raise ConfigError(f"{path}: rigs.{i}: {e}") from None
         for pattern in grid.patterns:
             for env in grid.environments:
                 d = {**base, "name": f"{Path(rig_file).stem}_{pattern}_{env}",
@@ -64,10 +79,12 @@ def load_grid(path) -> tuple[GridConfig, list[RigConfig]]:
                      "environment": {**base["environment"], "kind": env}}
                 if grid.frames:
                     d["trajectory"] = {**base["trajectory"], "frames": grid.frames}
-                try:
-                    configs.append(RigConfig.model_validate(d))
-                except ValidationError as e:
-                    raise ConfigError(f"{path}: configuration {d['name']}: {e}") from None
+                configs.append(parse_rig(d, f"{path}: configuration {d['name']}"))
+    names = [c.name for c in configs]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise ConfigError(f"{path}: rigs: configurations {twice} would run twice into one "
+                          f"folder (a rig file listed twice, or two with the same file name)")
     return grid, configs
 
 
@@ -77,15 +94,15 @@ def _run_config(args) -> dict:
 
     cfg_json, out, methods, trials = args
     cfg = RigConfig.model_validate(cfg_json)
+    run_dir = RunPaths(Path(out))
     t0 = time.perf_counter()
     try:
-        results = run(cfg, Path(out), methods, trials)
+        results = run(cfg, run_dir.root, methods, trials)
         agg = aggregate(results)
-        (Path(out) / "results.json").write_text(json.dumps({"aggregate": agg,
-                                                            "trials": results}, indent=2))
-        (Path(out) / "report.md").write_text(
-            markdown(agg, f"{cfg.name}: {cfg.pattern.kind}, {cfg.environment.kind}"))
-        plot_run(Path(out), results, agg)
+        write_json(run_dir.results, {"aggregate": agg, "trials": results})
+        write_text(run_dir.report,
+                   markdown(agg, f"{cfg.name}: {cfg.pattern.kind}, {cfg.environment.kind}"))
+        plot_run(run_dir.root, results, agg)
         return {"name": cfg.name, "aggregate": agg, "wall_time_s": time.perf_counter() - t0}
     except Exception as e:  # noqa: BLE001 — one configuration must not end the sweep
         return {"name": cfg.name, "error": f"{type(e).__name__}: {e}",
@@ -94,29 +111,33 @@ def _run_config(args) -> dict:
 
 def run_sweep(grid: GridConfig, configs: list[RigConfig], out: Path, workers: int = 1,
               progress=None) -> dict:
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    jobs = [(c.model_dump(mode="json"), str(out / c.name), grid.methods, grid.trials)
-            for c in configs]
-    t0 = time.perf_counter()
-    rows = {}
-    with ProcessPoolExecutor(max(1, workers),
-                             mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = [pool.submit(_run_config, j) for j in jobs]
-        for n, fut in enumerate(as_completed(futures), 1):
-            row = fut.result()
-            rows[row["name"]] = row
-            if progress:
-                progress(n, len(jobs))
-    result = {"name": grid.name, "workers": workers, "wall_time_s": time.perf_counter() - t0,
-              "configurations": [rows[c.name] for c in configs]}
-    result["stage_time_s"] = {
-        stage: sum(r["aggregate"]["timing"][stage]["mean"] * r["aggregate"]["trials"]
-                   for r in result["configurations"] if "aggregate" in r
-                   and r["aggregate"]["timing"][stage]["n"])
-        for stage in ("render_s", "detect_s", "calibrate_s", "rig_s")}
-    (out / "sweep.json").write_text(json.dumps(result, indent=2))
-    (out / "sweep.md").write_text(sweep_markdown(result, grid.methods))
+    """Every configuration into OUT/<name>/ (each holding its own run directory's lock), with
+    the sweep's lock on OUT; sweep.json and sweep.md last."""
+    if not 1 <= workers <= 64:
+        raise ValueError(f"--workers: expected 1..64, got {workers}")
+    with locked(out) as out:
+        jobs = [(c.model_dump(mode="json"), str(out / c.name), grid.methods, grid.trials)
+                for c in configs]
+        t0 = time.perf_counter()
+        rows = {}
+        with ProcessPoolExecutor(workers,
+                                 mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = [pool.submit(_run_config, j) for j in jobs]
+            for n, fut in enumerate(as_completed(futures), 1):
+                row = fut.result()
+                rows[row["name"]] = row
+                if progress:
+                    progress(n, len(jobs))
+        result = {"name": grid.name, "workers": workers,
+                  "wall_time_s": time.perf_counter() - t0,
+                  "configurations": [rows[c.name] for c in configs]}
+        result["stage_time_s"] = {
+            stage: sum(r["aggregate"]["timing"][stage]["mean"] * r["aggregate"]["trials"]
+                       for r in result["configurations"] if "aggregate" in r
+                       and r["aggregate"]["timing"][stage]["n"])
+            for stage in ("render_s", "detect_s", "calibrate_s", "rig_s")}
+        write_json(out / "sweep.json", result)
+        write_text(out / "sweep.md", sweep_markdown(result, grid.methods))
     return result
 
 

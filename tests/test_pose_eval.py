@@ -23,6 +23,7 @@ from pose_eval.scene import in_true_world, in_view, make_scene, place_body, rig_
 from stereo_bench.camera import compose, invert, matrix_to_rodrigues, rodrigues_to_matrix
 from stereo_bench.config import load_rig
 from stereo_bench.pipeline import load_run
+from stereo_bench.rundir import RunPaths, write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 WIDE, MIXED = ROOT / "configs/paper/wide_pair.yaml", ROOT / "configs/paper/mixed_pair.yaml"
@@ -250,12 +251,10 @@ def write_run(root: Path, rig: Path, rigs: dict, seeds=(0,)) -> Path:
     truth = cameras(rig)
     R0i, t0i = invert(truth[0].R, truth[0].tvec)
     for s in seeds:
-        d = root / "trials" / f"seed_{s}"
-        (d / "dataset" / "ground_truth").mkdir(parents=True)
-        shutil.copy(rig, d / "dataset" / "config.yaml")
-        (d / "dataset" / "ground_truth" / "cameras.json").write_text(
-            json.dumps([c.to_dict() for c in truth]))
-        (d / "rig").mkdir()
+        trial = RunPaths(root).trial(s)
+        trial.dataset.root.mkdir(parents=True)
+        shutil.copy(rig, trial.dataset.config)
+        write_json(trial.dataset.cameras, [c.to_dict() for c in truth])
         for method, est in rigs.items():
             if isinstance(est, str):
                 entry = {"method": method, "error": est}
@@ -266,7 +265,7 @@ def write_run(root: Path, rig: Path, rigs: dict, seeds=(0,)) -> Path:
                     rel.append(cam.with_params(rvec=matrix_to_rodrigues(R), tvec=t).to_dict())
                 entry = {"method": method, "reference": truth[0].name, "cameras": rel,
                          "rms_px": 0.1}
-            (d / "rig" / f"{method}.json").write_text(json.dumps(entry))
+            write_json(trial.rig(method), entry)
     return root
 
 

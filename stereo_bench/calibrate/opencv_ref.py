@@ -35,8 +35,15 @@ class OpenCVCalibrator:
         t0 = time.perf_counter()
         obj = [o.astype(np.float32) for o in obs.object_points]
         img = [p.astype(np.float32).reshape(-1, 1, 2) for p in obs.image_points]
-        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, obs.image_size, None, None,
-                                                         flags=self.flags)
+        # One thread: OpenCV's parallel reductions change the result in the 7th digit with the
+        # thread count (TRAPS.md), and the same config and seed must give the same numbers.
+        threads = cv2.getNumThreads()
+        cv2.setNumThreads(1)
+        try:
+            rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, obs.image_size, None,
+                                                             None, flags=self.flags)
+        finally:
+            cv2.setNumThreads(threads)
         camera = Camera.from_K(obs.camera_name, *obs.image_size, K, np.ravel(dist)[:8])
         rvecs = np.array(rvecs, dtype=np.float64).reshape(-1, 3)
         tvecs = np.array(tvecs, dtype=np.float64).reshape(-1, 3)

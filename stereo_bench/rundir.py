@@ -1,0 +1,371 @@
+"""The run directory: every path under ``RUN/``, strict and atomic JSON, stage fingerprints and
+the lock that gives a run directory one writer at a time.
+
+Layout (the one place it is spelled out; docs/run_directory.md describes it for users)::
+
+    RUN/.lock                                  held while a command writes into RUN
+    RUN/results.json, RUN/report.md, RUN/plots/*.png
+    RUN/trials/seed_<s>/dataset/               a rendered dataset (layout: DatasetPaths)
+    RUN/trials/seed_<s>/detections/<camera>.npz, detections/done.json
+    RUN/trials/seed_<s>/calibrations/<method>/<camera>.json | .yaml | _views.npz
+    RUN/trials/seed_<s>/metrics.json
+    RUN/trials/seed_<s>/rig/<method>.json
+
+Every stage ends by writing one JSON marker (manifest.json, detections/done.json, metrics.json,
+rig/<method>.json) that carries the fingerprint of exactly what the stage depends on. A stage is
+reused only when its marker is readable and its fingerprint matches; a missing, torn or stale
+marker means the stage is redone, and :class:`Notes` tells the user which and why.
+
+JSON is written strictly: NaN and infinities become ``null``, and in a mapping a sibling key
+``<key>_reason`` says what the value was ("not a number" or "infinite"), so every file parses with
+a browser's ``JSON.parse``. Files are written to a temporary name and moved into place with
+``os.replace``, so a kill or a full disk never leaves a torn file under its real name.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import hashlib
+import io
+import json
+import math
+import os
+import re
+import tempfile
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+#: Bumped when the meaning of any stage's output changes, so older markers are not reused.
+FORMAT_VERSION = 2
+
+NAME_PATTERN = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+
+
+def check_name(name: str, what: str) -> str:
+    """A name that becomes a file or folder name: letters, digits, ``_``, ``-``, ``.``; at most 64
+    characters; not ``.`` or ``..``. Raises ValueError naming ``what``."""
+    if not isinstance(name, str) or not NAME_PATTERN.match(name) or name in (".", ".."):
+        raise ValueError(f"{what}: {name!r} is not a safe name (expected 1-64 letters, digits, "
+                         f"'_', '-' or '.', and not '.' or '..')")
+    return name
+
+
+# ----------------------------------------------------------------------------------------------
+# Strict, atomic files
+# ----------------------------------------------------------------------------------------------
+
+class UnreadableFileError(ValueError):
+    """A file that exists but cannot be parsed (torn by a kill, edited by hand, not ours)."""
+
+
+def strict(x):
+    """A JSON-ready copy of ``x``: numpy scalars and arrays become Python values, non-finite
+    floats become None (with ``<key>_reason`` beside them in a mapping)."""
+    if isinstance(x, dict):
+        out = {}
+        for k, v in x.items():
+            k = str(k)
+            out[k] = strict(v)
+            reason = _non_finite(v)
+            if reason:
+                out[f"{k}_reason"] = reason
+        return out
+    if isinstance(x, (list, tuple)):
+        return [strict(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return strict(x.tolist())
+    if isinstance(x, (np.floating, np.integer, np.bool_)):
+        return strict(x.item())
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, Path):
+        return str(x)
+    return x
+
+
+def _non_finite(v) -> str | None:
+    if isinstance(v, (float, np.floating)) and not math.isfinite(v):
+        return "not a number" if math.isnan(v) else "infinite"
+    return None
+
+
+def write_bytes(path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (temporary file in the same folder, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def write_text(path, text: str) -> Path:
+    return write_bytes(path, text.encode("utf-8"))
+
+
+def write_json(path, obj) -> Path:
+    """Strict JSON (see :func:`strict`), atomically."""
+    return write_text(path, json.dumps(strict(obj), indent=2, allow_nan=False) + "\n")
+
+
+def write_npy(path, array: np.ndarray) -> Path:
+    buf = io.BytesIO()
+    np.save(buf, array, allow_pickle=False)
+    return write_bytes(path, buf.getvalue())
+
+
+def write_npz(path, **arrays) -> Path:
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return write_bytes(path, buf.getvalue())
+
+
+def write_png(path, image: np.ndarray) -> Path:
+    import cv2
+
+    ok, data = cv2.imencode(".png", image)
+    if not ok:
+        raise OSError(f"{path}: could not encode the image as PNG")
+    return write_bytes(path, data.tobytes())
+
+
+def read_json(path):
+    """Parse a JSON file; raise UnreadableFileError naming the file when it cannot be."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_bytes().decode("utf-8"))
+    except FileNotFoundError:
+        raise
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise UnreadableFileError(f"{path}: unreadable ({e})") from None
+
+
+def nan_from_null(x):
+    """Inverse of :func:`strict` for numbers read back: null becomes NaN, reason keys go."""
+    if isinstance(x, dict):
+        return {k: nan_from_null(v) for k, v in x.items() if not k.endswith("_reason")}
+    if isinstance(x, list):
+        return [nan_from_null(v) for v in x]
+    return math.nan if x is None else x
+
+
+# ----------------------------------------------------------------------------------------------
+# Fingerprints and markers
+# ----------------------------------------------------------------------------------------------
+
+def fingerprint(*parts) -> str:
+    """A short hash of JSON-able ``parts`` (with the package's format and version), so that a
+    changed input, option or code format gives another fingerprint."""
+    from . import __version__
+
+    text = json.dumps(strict([FORMAT_VERSION, __version__, *parts]), sort_keys=True,
+                      separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+
+class Notes:
+    """What a run tells its user besides its results: redone stages and their reason,
+    warnings about the data. Kept in results.json and printed by the commands."""
+
+    def __init__(self):
+        self.items: list[str] = []
+
+    def add(self, text: str) -> None:
+        if text not in self.items:
+            self.items.append(text)
+
+
+def reusable(path: Path, expected: str, notes: Notes | None, stage: str):
+    """The marker at ``path`` if it is readable and was written for fingerprint ``expected``;
+    otherwise None, with a note saying why the stage is redone."""
+    if not path.is_file():
+        return None
+    try:
+        marker = read_json(path)
+    except UnreadableFileError as e:
+        if notes:
+            notes.add(f"{e}; redoing the {stage} stage")
+        return None
+    found = marker.get("fingerprint") if isinstance(marker, dict) else None
+    if found != expected:
+        if notes:
+            notes.add(f"{path}: written for other inputs (fingerprint {found}, now {expected}: "
+                      f"the configuration, methods or code changed); redoing the {stage} stage")
+        return None
+    return marker
+
+
+# ----------------------------------------------------------------------------------------------
+# Paths
+# ----------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class DatasetPaths:
+    """The files of a dataset (docs/dataset_format.md); ``manifest`` is written last."""
+
+    root: Path
+
+    @property
+    def manifest(self) -> Path:
+        return self.root / "manifest.json"
+
+    @property
+    def config(self) -> Path:
+        return self.root / "config.yaml"
+
+    @property
+    def texture(self) -> Path:
+        return self.root / "pattern.png"
+
+    @property
+    def timing(self) -> Path:
+        return self.root / "timing.json"
+
+    @property
+    def ground_truth(self) -> Path:
+        return self.root / "ground_truth"
+
+    @property
+    def cameras(self) -> Path:
+        return self.ground_truth / "cameras.json"
+
+    def array(self, name: str) -> Path:
+        return self.ground_truth / f"{name}.npy"
+
+    def images(self, camera: str) -> Path:
+        return self.root / "images" / camera
+
+    def image(self, camera: str, frame: int) -> Path:
+        return self.images(camera) / f"{frame:06d}.png"
+
+
+@dataclass(frozen=True)
+class TrialPaths:
+    """The files of one trial (one seed) of a run."""
+
+    root: Path
+
+    @property
+    def dataset(self) -> DatasetPaths:
+        return DatasetPaths(self.root / "dataset")
+
+    @property
+    def detections(self) -> Path:
+        return self.root / "detections"
+
+    def detection(self, camera: str) -> Path:
+        return self.detections / f"{camera}.npz"
+
+    @property
+    def detections_done(self) -> Path:
+        return self.detections / "done.json"
+
+    def calibrations(self, method: str) -> Path:
+        return self.root / "calibrations" / method
+
+    def calibration(self, method: str, camera: str) -> Path:
+        return self.calibrations(method) / f"{camera}.json"
+
+    def calibration_yaml(self, method: str, camera: str) -> Path:
+        return self.calibrations(method) / f"{camera}.yaml"
+
+    def views(self, method: str, camera: str) -> Path:
+        return self.calibrations(method) / f"{camera}_views.npz"
+
+    @property
+    def metrics(self) -> Path:
+        return self.root / "metrics.json"
+
+    @property
+    def rigs(self) -> Path:
+        return self.root / "rig"
+
+    def rig(self, method: str) -> Path:
+        return self.rigs / f"{method}.json"
+
+
+@dataclass(frozen=True)
+class RunPaths:
+    """The files of a run directory (one configuration, all its trials)."""
+
+    root: Path
+
+    def trial(self, seed: int) -> TrialPaths:
+        return TrialPaths(self.root / "trials" / f"seed_{seed}")
+
+    @property
+    def trials(self) -> Path:
+        return self.root / "trials"
+
+    def trial_seeds(self) -> list[int]:
+        seeds = []
+        for p in self.trials.glob("seed_*"):
+            tail = p.name[len("seed_"):]
+            if p.is_dir() and tail.lstrip("-").isdigit():
+                seeds.append(int(tail))
+        return sorted(seeds)
+
+    @property
+    def results(self) -> Path:
+        return self.root / "results.json"
+
+    @property
+    def report(self) -> Path:
+        return self.root / "report.md"
+
+    @property
+    def plots(self) -> Path:
+        return self.root / "plots"
+
+    @property
+    def lock_file(self) -> Path:
+        return self.root / ".lock"
+
+
+def prepare_output(out, what: str = "--out") -> Path:
+    """Create the output folder ``out`` (refusing a path that is a file)."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{what}: {out} exists and is not a directory")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ValueError(f"{what}: cannot create {out} ({e.strerror})") from None
+    return out
+
+
+class RunLockedError(ValueError):
+    """Another process is writing into the same run directory."""
+
+
+@contextmanager
+def locked(out, what: str = "--out"):
+    """Hold RUN/.lock for the duration: a second command writing into the same folder is refused
+    at once, naming the folder (it would otherwise mix its results with the first one's)."""
+    root = prepare_output(out, what)
+    path = RunPaths(root).lock_file
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            if e.errno not in (errno.EAGAIN, errno.EACCES):
+                raise
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "another process"
+            raise RunLockedError(f"{root}: another run is writing into this folder (pid "
+                                 f"{holder}); wait for it to finish or choose another {what}"
+                                 ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        yield root
+    finally:
+        os.close(fd)  # closing the descriptor releases the lock
