@@ -11,6 +11,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.text import Text
 
 from .config import ConfigError, load_rig
+from .rundir import locked
 
 console = Console(stderr=True)
 MAX_TRIALS = 1000
@@ -36,7 +37,6 @@ def _warn(lines) -> None:
 
 def cmd_render(args) -> int:
     from .dataset import write_dataset
-    from .rundir import locked
 
     cfg = load_rig(args.rig)
     out = Path(args.out or Path("out") / cfg.name)
@@ -71,15 +71,10 @@ def _methods(text: str) -> list[str]:
 
 
 def _report(trials: list[dict], out: Path, title: str) -> dict:
-    from .report import aggregate, markdown
-    from .rundir import RunPaths, write_json, write_text
+    from .report import markdown, write_report
 
-    run = RunPaths(out)
-    agg = aggregate(trials)
-    write_json(run.results, {"aggregate": agg, "trials": trials})
-    md = markdown(agg, title)
-    write_text(run.report, md)
-    console.print(md, markup=False, soft_wrap=True, highlight=False)
+    agg = write_report(out, trials, title)
+    console.print(markdown(agg, title), markup=False, soft_wrap=True, highlight=False)
     _warn(agg["warnings"] + agg["notes"])
     return agg
 
@@ -114,25 +109,29 @@ def _finish(trials: list[dict], written: str) -> int:
 
 def cmd_calibrate(args) -> int:
     from .dataset import Dataset
+    from .report import run_title
 
     base = Dataset.load(args.dataset)
     _warn(base.warnings)
     out = Path(args.out or Path(args.dataset) / "calibration")
-    trials = _run(base.config, out, args, args.dataset, first_dataset=base.root, with_rig=False)
-    _report(trials, out, f"{base.config.name}: {base.config.pattern.kind}, "
-                         f"{base.config.environment.kind}")
+    with locked(out):
+        trials = _run(base.config, out, args, args.dataset, first_dataset=base.root,
+                      with_rig=False)
+        _report(trials, out, run_title(base.config))
     return _finish(trials, f"{out}/results.json, report.md; estimates in "
                            f"{out}/trials/*/calibrations")
 
 
 def cmd_run(args) -> int:
     from .plots import plot_run
+    from .report import run_title
 
     cfg = load_rig(args.rig)
     out = Path(args.out or Path("out") / cfg.name)
-    trials = _run(cfg, out, args, args.rig)
-    agg = _report(trials, out, f"{cfg.name}: {cfg.pattern.kind}, {cfg.environment.kind}")
-    plots = plot_run(out, trials, agg)
+    with locked(out):  # the whole command: trials, report and plots come from one run
+        trials = _run(cfg, out, args, args.rig)
+        agg = _report(trials, out, run_title(cfg))
+        plots = plot_run(out, trials, agg)
     return _finish(trials, f"{out}/results.json, {out}/report.md and {len(plots)} plots in "
                            f"{out}/plots")
 

@@ -93,11 +93,12 @@ def _dataset(cfg: RigConfig, trial: TrialPaths, dataset_dir: Path | None, progre
         ds = Dataset.load(paths.root)
         if ds.fingerprint == dataset_fingerprint(cfg):
             return ds
-        notes.add(f"{paths.manifest}: rendered from another configuration; rendering again")
+        notes.stage_redone(f"{paths.manifest}: rendered from another configuration (the rig "
+                           f"file changed); rendering again")
     except FileNotFoundError:
         pass
     except UnreadableFileError as e:
-        notes.add(f"{e}; rendering again")
+        notes.stage_redone(f"{e}; rendering again")
     return write_dataset(cfg, paths.root, progress)
 
 

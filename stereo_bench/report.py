@@ -7,8 +7,11 @@ trials (re-renders with different seeds) it was measured on, and printed as mean
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
+
+from .rundir import RunPaths, write_json, write_text
 
 # (column title, path into one calibration entry)
 CALIBRATION_COLUMNS = [
@@ -163,3 +166,16 @@ def markdown(agg: dict, title: str) -> str:
         lines += ["", "Stage times (s per trial): " + ", ".join(
             f"{k[:-2]} {fmt(v)}" for k, v in timing.items() if v["n"])]
     return "\n".join(lines) + "\n"
+
+
+def run_title(cfg) -> str:
+    return f"{cfg.name}: {cfg.pattern.kind}, {cfg.environment.kind}"
+
+
+def write_report(out: Path, trials: list[dict], title: str) -> dict:
+    """RUN/results.json (every number, strict JSON) and RUN/report.md; returns the aggregate."""
+    run = RunPaths(out)
+    agg = aggregate(trials)
+    write_json(run.results, {"aggregate": agg, "trials": trials})
+    write_text(run.report, markdown(agg, title))
+    return agg

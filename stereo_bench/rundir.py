@@ -42,6 +42,9 @@ import numpy as np
 #: Bumped when the meaning of any stage's output changes, so older markers are not reused.
 FORMAT_VERSION = 2
 
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 
 
@@ -99,6 +102,7 @@ def write_bytes(path, data: bytes) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        os.fchmod(fd, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the file the usual mode
         with os.fdopen(fd, "wb") as f:
             f.write(data)
         os.replace(tmp, path)
@@ -178,10 +182,18 @@ class Notes:
 
     def __init__(self):
         self.items: list[str] = []
+        # Once a stage is redone, every later stage is redone too (its inputs changed): one
+        # note for the first is enough.
+        self.redone = False
 
     def add(self, text: str) -> None:
         if text not in self.items:
             self.items.append(text)
+
+    def stage_redone(self, text: str) -> None:
+        if not self.redone:
+            self.add(text + " (and every later stage)")
+        self.redone = True
 
 
 def reusable(path: Path, expected: str, notes: Notes | None, stage: str):
@@ -193,13 +205,13 @@ def reusable(path: Path, expected: str, notes: Notes | None, stage: str):
         marker = read_json(path)
     except UnreadableFileError as e:
         if notes:
-            notes.add(f"{e}; redoing the {stage} stage")
+            notes.stage_redone(f"{e}; redoing the {stage} stage")
         return None
     found = marker.get("fingerprint") if isinstance(marker, dict) else None
     if found != expected:
         if notes:
-            notes.add(f"{path}: written for other inputs (fingerprint {found}, now {expected}: "
-                      f"the configuration, methods or code changed); redoing the {stage} stage")
+            notes.stage_redone(f"{path}: written for other inputs (the configuration, the "
+                               f"methods or the code changed); redoing the {stage} stage")
         return None
     return marker
 
@@ -352,6 +364,10 @@ def locked(out, what: str = "--out"):
     """Hold RUN/.lock for the duration: a second command writing into the same folder is refused
     at once, naming the folder (it would otherwise mix its results with the first one's)."""
     root = prepare_output(out, what)
+    key = root.resolve()
+    if key in _HELD:  # this process holds it already (the command around a library call)
+        yield root
+        return
     path = RunPaths(root).lock_file
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
@@ -366,6 +382,13 @@ def locked(out, what: str = "--out"):
                                  ) from None
         os.ftruncate(fd, 0)
         os.pwrite(fd, str(os.getpid()).encode(), 0)
-        yield root
+        _HELD.add(key)
+        try:
+            yield root
+        finally:
+            _HELD.discard(key)
     finally:
         os.close(fd)  # closing the descriptor releases the lock
+
+
+_HELD: set[Path] = set()

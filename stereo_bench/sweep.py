@@ -27,8 +27,8 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from .config import ConfigError, Int, Name, RigConfig, load_rig, load_yaml, parse_rig
-from .report import aggregate, fmt, markdown
-from .rundir import RunPaths, locked, write_json, write_text
+from .report import fmt, run_title, write_report
+from .rundir import locked, write_json, write_text
 
 
 class GridConfig(BaseModel):
@@ -94,15 +94,12 @@ def _run_config(args) -> dict:
 
     cfg_json, out, methods, trials = args
     cfg = RigConfig.model_validate(cfg_json)
-    run_dir = RunPaths(Path(out))
     t0 = time.perf_counter()
     try:
-        results = run(cfg, run_dir.root, methods, trials)
-        agg = aggregate(results)
-        write_json(run_dir.results, {"aggregate": agg, "trials": results})
-        write_text(run_dir.report,
-                   markdown(agg, f"{cfg.name}: {cfg.pattern.kind}, {cfg.environment.kind}"))
-        plot_run(run_dir.root, results, agg)
+        with locked(out):
+            results = run(cfg, Path(out), methods, trials)
+            agg = write_report(Path(out), results, run_title(cfg))
+            plot_run(Path(out), results, agg)
         return {"name": cfg.name, "aggregate": agg, "wall_time_s": time.perf_counter() - t0}
     except Exception as e:  # noqa: BLE001 — one configuration must not end the sweep
         return {"name": cfg.name, "error": f"{type(e).__name__}: {e}",
