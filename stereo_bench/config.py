@@ -131,7 +131,8 @@ class PatternConfig(_Strict):
     """The board: a kind plus optional overrides of its geometry (see stereo_bench.patterns).
 
     Overrides are checked per kind: the field must exist on that board, with its type, and the
-    board they make must be buildable, not degenerate and of a size one machine can render."""
+    board they make must be buildable and of a size one machine can render. Counts of at least
+    2 per direction keep every board two-dimensional (one row would be collinear)."""
 
     model_config = ConfigDict(extra="allow", frozen=True)
     kind: Literal["checkerboard", "symmetric_circles", "asymmetric_circles", "charuco"]
@@ -152,11 +153,6 @@ class PatternConfig(_Strict):
         if max(w, h) > MAX_BOARD_MM:
             raise ValueError(f"pattern: the board's outline is {w:.0f} x {h:.0f} mm; expected "
                              f"at most {MAX_BOARD_MM:.0f} mm per side")
-        xy = board.object_points()[:, :2]
-        spread = np.linalg.svd(xy - xy.mean(0), compute_uv=False)
-        if spread[1] < 1e-6 * spread[0]:
-            raise ValueError("pattern: its feature points lie on a line; a planar calibration "
-                             "needs a two-dimensional grid")
         return self
 
     def overrides(self) -> dict:

@@ -1,0 +1,265 @@
+"""Runs you can trust: reuse by fingerprint, one writer per run directory, torn markers, changed
+images, strict JSON, estimates flagged where they fold, and byte-identical reruns."""
+
+import json
+import math
+import multiprocessing
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from stereo_bench.camera import Camera
+from stereo_bench.cli import main
+from stereo_bench.config import ConfigError, load_rig, parse_rig
+from stereo_bench.metrics import projection_difference, validity
+from stereo_bench.rundir import (RunLockedError, RunPaths, locked, read_json, strict,
+                                 write_json)
+
+ROOT = Path(__file__).parent.parent
+
+
+def small_rig(tmp_path, name="rig.yaml", frames=6, **changes) -> Path:
+    d = yaml.safe_load((ROOT / "configs" / "quickstart.yaml").read_text())
+    d["trajectory"]["frames"] = frames
+    d.update(changes)
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(d))
+    return path
+
+
+def results(out: Path) -> dict:
+    return json.loads((out / "results.json").read_text())
+
+
+def test_strict_json_has_no_nan_and_says_why(tmp_path):
+    path = write_json(tmp_path / "x.json", {"a": float("nan"), "b": [1.0, float("inf")],
+                                            "c": np.float32(2.5), "d": np.arange(2)})
+    text = path.read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    assert json.loads(text) == {"a": None, "a_reason": "not a number", "b": [1.0, None],
+                                "c": 2.5, "d": [0, 1]}
+    assert not list(tmp_path.glob(".*.tmp"))  # the temporary file was moved into place
+
+
+def test_lock_refuses_a_second_writer(tmp_path):
+    with locked(tmp_path / "run"):
+        ctx = multiprocessing.get_context("spawn")
+        with ctx.Pool(1) as pool:
+            message = pool.apply(_try_lock, (str(tmp_path / "run"),))
+    assert "another run is writing into this folder" in message
+    assert str(os.getpid()) in message
+    with locked(tmp_path / "run"):  # released: a later run gets it
+        pass
+
+
+def _try_lock(path):
+    try:
+        with locked(path):
+            return "acquired"
+    except RunLockedError as e:
+        return str(e)
+
+
+def test_out_that_is_a_file_is_refused(tmp_path, capsys):
+    rig = small_rig(tmp_path)
+    (tmp_path / "file").write_text("x")
+    assert main([str(rig), "--out", str(tmp_path / "file")]) == 2
+    assert "exists and is not a directory" in capsys.readouterr().err
+
+
+def test_edited_config_rerun_gives_the_new_results_and_says_so(tmp_path, capsys):
+    out = tmp_path / "run"
+    rig = small_rig(tmp_path)
+    assert main([str(rig), "--out", str(out), "--methods", "opencv"]) == 0
+    first = results(out)["trials"][0]
+    capsys.readouterr()
+    d = yaml.safe_load(rig.read_text())
+    d["cameras"][0]["fx"] = 560.0  # an edited lens
+    rig.write_text(yaml.safe_dump(d))
+    assert main([str(rig), "--out", str(out), "--methods", "opencv"]) == 0
+    err = capsys.readouterr().err.replace("\n", "")
+    assert "rendered from another configuration" in err
+    second = results(out)["trials"][0]
+    truth = read_json(RunPaths(out).trial(7).dataset.cameras)[0]
+    assert truth["fx"] == 560.0
+    est = Camera.load_json(RunPaths(out).trial(7).calibration("opencv", "left"))
+    assert abs(est.fx - 560.0) < 1.0  # calibrated from the new renders, not reused
+    assert second["fingerprint"] != first["fingerprint"]
+    assert any("another configuration" in n for n in results(out)["aggregate"]["notes"])
+
+
+def test_changed_methods_redo_calibration_but_reuse_detections(tmp_path):
+    out = tmp_path / "run"
+    rig = small_rig(tmp_path)
+    assert main([str(rig), "--out", str(out), "--methods", "opencv"]) == 0
+    trial = RunPaths(out).trial(7)
+    detected = trial.detections_done.stat().st_mtime_ns
+    assert main([str(rig), "--out", str(out), "--methods", "opencv,bouguet"]) == 0
+    assert trial.detections_done.stat().st_mtime_ns == detected
+    assert set(results(out)["aggregate"]["rig"]) == {"opencv", "bouguet"}
+
+
+# detections/done.json is read only when the calibration stage is redone (metrics.json carries
+# the detections' fingerprint), so a torn one alone changes nothing and goes unmentioned.
+@pytest.mark.parametrize("marker", ["dataset/manifest.json", "metrics.json", "rig/opencv.json",
+                                    "dataset/ground_truth/cameras.json"])
+def test_a_torn_marker_is_redone_and_named(tmp_path, capsys, marker):
+    out = tmp_path / "run"
+    rig = small_rig(tmp_path, frames=5)
+    assert main([str(rig), "--out", str(out), "--methods", "opencv"]) == 0
+    before = results(out)["trials"][0]["rig"]["opencv"]["rmse_cal_mm"]
+    path = RunPaths(out).trial(7).root / marker
+    path.write_bytes(path.read_bytes()[:len(path.read_bytes()) // 2])  # cut short by a kill
+    capsys.readouterr()
+    assert main([str(rig), "--out", str(out), "--methods", "opencv"]) == 0
+    err = capsys.readouterr().err.replace("\n", "")
+    assert "unreadable" in err and marker.split("/")[-1] in err
+    assert results(out)["trials"][0]["rig"]["opencv"]["rmse_cal_mm"] == before
+
+
+def test_a_resized_image_is_refused_naming_it(tmp_path, capsys):
+    import cv2
+
+    out = tmp_path / "run"
+    rig = small_rig(tmp_path, frames=4)
+    assert main(["render", str(rig), "--out", str(out)]) == 0
+    image = out / "images" / "right" / "000002.png"
+    cv2.imwrite(str(image), cv2.resize(cv2.imread(str(image)), (320, 240)))
+    capsys.readouterr()
+    assert main(["calibrate", str(out), "--methods", "opencv"]) == 2
+    err = capsys.readouterr().err.replace("\n", "")
+    assert "000002.png: 320x240 px, expected 640x480" in err
+
+
+def test_identical_runs_differ_only_in_wall_times(tmp_path):
+    """The same config and seed, twice, into two folders: every image, array, calibration and
+    plot is byte-identical; the JSON files differ only in keys documented as wall times."""
+    rig = small_rig(tmp_path, frames=5)
+    a, b = tmp_path / "a", tmp_path / "b"
+    for out in (a, b):
+        assert main([str(rig), "--out", str(out), "--methods", "opencv,zhang"]) == 0
+    differ = sorted(p.relative_to(a).as_posix() for p in a.rglob("*") if p.is_file()
+                    and p.read_bytes() != (b / p.relative_to(a)).read_bytes())
+    assert set(differ) <= {".lock", "report.md", "results.json", "trials/seed_7/metrics.json",
+                           "trials/seed_7/dataset/timing.json",
+                           "trials/seed_7/detections/done.json", "trials/seed_7/rig/opencv.json",
+                           "trials/seed_7/rig/zhang.json"}, differ
+
+    def without_times(x):
+        if isinstance(x, dict):
+            return {k: without_times(v) for k, v in x.items()
+                    if not (k.endswith("_s") or k in ("timing", "time s"))}
+        return [without_times(v) for v in x] if isinstance(x, list) else x
+
+    for name in differ:
+        if name.endswith(".json"):
+            assert without_times(json.loads((a / name).read_text())) == without_times(
+                json.loads((b / name).read_text())), name
+
+
+def test_valid_config_values_that_see_nothing_are_refused_or_warned(tmp_path, capsys):
+    far = small_rig(tmp_path, "far.yaml")
+    d = yaml.safe_load(far.read_text())
+    d["trajectory"]["depth_mm"] = [5e5, 6e5]  # the board 500 m away: blank images
+    far.write_text(yaml.safe_dump(d))
+    assert main(["render", str(far), "--out", str(tmp_path / "o1")]) == 2
+    err = capsys.readouterr().err.replace("\n", "")
+    assert str(far) in err and "spans at most" in err and "trajectory.depth_mm" in err
+    assert not (tmp_path / "o1" / "manifest.json").exists()
+
+    one = small_rig(tmp_path, "one.yaml")
+    d = yaml.safe_load(one.read_text())
+    d["cameras"][1]["look_at_mm"] = [-100000.0, 0.0, 700.0]  # looks away from the board
+    one.write_text(yaml.safe_dump(d))
+    assert main(["render", str(one), "--out", str(tmp_path / "o2")]) == 0
+    err = capsys.readouterr().err.replace("\n", "")
+    assert "camera 'right': the board is never in view" in err
+    assert "camera 'right': the board is partly" not in err
+
+
+@pytest.mark.parametrize("change, field", [
+    ({"cx": -1.0}, "cameras.0"), ({"cy": 0.0}, "cameras.0"), ({"width": True}, "width"),
+    ({"name": "../../x"}, "cameras.0.name"), ({"name": "/abs/x"}, "cameras.0.name"),
+    ({"name": "x" * 300}, "cameras.0.name"), ({"fx": float("nan")}, "cameras.0.fx"),
+    ({"position_mm": [float("nan"), 0, 0]}, "cameras.0.position_mm"),
+    ({"width": int(1e12)}, "cameras.0.width"), ({"dist": [1e6, 0, 0, 0]}, "cameras.0.dist")])
+def test_bad_camera_values_are_refused_by_name(tmp_path, change, field):
+    d = yaml.safe_load((ROOT / "configs" / "quickstart.yaml").read_text())
+    d["cameras"][0].update(change)
+    with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
+        parse_rig(d, "x.yaml")
+
+
+@pytest.mark.parametrize("text, expected", [
+    (b"name: a\nname: b\n", "duplicate key 'name'"),
+    ("name: x\n".encode("utf-16"), "not UTF-8 text"),
+    (b"a: " + b"[" * 10000 + b"]" * 10000 + b"\n", "nested"),
+    (b"\x00\x01\x02", "NUL")])
+def test_unreadable_rig_files_are_named(tmp_path, text, expected):
+    path = tmp_path / "rig.yaml"
+    path.write_bytes(text)
+    with pytest.raises(ConfigError) as e:
+        load_rig(path)
+    assert str(path) in str(e.value) and expected in str(e.value)
+
+
+def test_pattern_overrides_are_checked_per_kind():
+    d = yaml.safe_load((ROOT / "configs" / "quickstart.yaml").read_text())
+    for override, message in [({"square_mm": "abc"}, "pattern.square_mm: expected a finite"),
+                              ({"squares_x": "9"}, "pattern.squares_x: expected an integer"),
+                              ({"squares_x": 1000}, "expected 2..100"),
+                              ({"spacing_mm": 3}, "unknown field for checkerboard"),
+                              ({"square_mm": 500.0}, "outline")]:
+        with pytest.raises(ConfigError, match=message):
+            parse_rig({**d, "pattern": {"kind": "checkerboard", **override}})
+    with pytest.raises(ConfigError, match=r"pattern\.rows: expected 2\.\.100, got 1"):
+        parse_rig({**d, "pattern": {"kind": "symmetric_circles", "rows": 1, "cols": 5}})
+
+
+def test_sweep_refuses_duplicates_and_unknown_methods_before_rendering(tmp_path, capsys):
+    rig = small_rig(tmp_path)
+    for grid, message in [({"rigs": [str(rig), str(rig)]}, "would run twice"),
+                          ({"rigs": [str(rig)], "methods": []}, "methods"),
+                          ({"rigs": [str(rig)], "methods": ["nosuch"]}, "nosuch")]:
+        path = tmp_path / "grid.yaml"
+        path.write_text(yaml.safe_dump({"patterns": ["checkerboard"], **grid}))
+        assert main(["sweep", str(path), "--out", str(tmp_path / "s")]) == 2
+        assert message in capsys.readouterr().err
+        assert not (tmp_path / "s").exists()
+
+
+def test_a_folding_estimate_is_flagged_and_its_statistics_cover_only_the_valid_part():
+    truth = Camera("c", 640, 480, 600, 450, 320, 240, dist=[0.5, 0.1, 0.03, 0, 0, 0, 0, 0])
+    # k1 < 0 with no higher term folds at r = 1/sqrt(3 |k1|) = 0.73: inside this image.
+    folded = truth.with_params(dist=np.array([-0.62, 0, 0, 0, 0, 0, 0, 0]))
+    v = validity(folded)
+    assert not v["usable"] and 0 < v["valid_fraction"] < 1
+    assert v["fold_radius"] == pytest.approx(1 / math.sqrt(3 * 0.62), abs=1e-4)
+    # Over the valid part, the statistics no longer depend on the grid (within its sampling).
+    coarse, fine = (projection_difference(folded, truth, grid=g) for g in ((64, 48), (320, 240)))
+    assert coarse["fraction_left_out"] > 0.3
+    assert coarse["fraction_left_out"] == pytest.approx(fine["fraction_left_out"], abs=0.025)
+    assert coarse["mean_px"] == pytest.approx(fine["mean_px"], rel=0.01)
+    assert validity(truth) == {"valid_fraction": 1.0, "fold_radius": pytest.approx(
+        validity(truth)["fold_radius"]), "usable": True}
+
+
+def test_strict_handles_nested_numpy():
+    assert strict({"x": [np.nan, {"y": np.inf}]}) == {"x": [None, {"y": None,
+                                                                  "y_reason": "infinite"}]}
+
+
+def test_pose_eval_refuses_meaningless_options(tmp_path, capsys):
+    from pose_eval import cli
+
+    rig = str(ROOT / "configs" / "quickstart.yaml")
+    for option, value in [("--noise-px", "nan"), ("--noise-px", "inf"),
+                          ("--distance-mm", "1e9"), ("--miss-rate", "1"),
+                          ("--outlier-rate", "-0.1")]:
+        assert cli.main(["--calib", "gt", "--rig", rig, option, value,
+                         "--out", str(tmp_path / "p")]) == 2
+        assert option in capsys.readouterr().err
+    assert not (tmp_path / "p").exists()
