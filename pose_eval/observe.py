@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from stereo_bench.camera import Camera
+from stereo_bench.rundir import write_json
 
 from .body import NUM_JOINTS
 from .scene import Scene, in_view
@@ -246,4 +247,4 @@ def write_openpose(folder, cameras: list[Camera], keypoints: Keypoints) -> None:
             xyc[ok, 2] = keypoints.confidence[c, t, ok]
             doc = {"version": 1.3, "people": [{"person_id": [-1],
                                                "pose_keypoints_2d": xyc.reshape(-1).tolist()}]}
-            _keypoint_path(folder, cam, t).write_text(json.dumps(doc))
+            write_json(_keypoint_path(folder, cam, t), doc)

@@ -78,6 +78,8 @@ def markdown(results: dict) -> str:
         "larger). PA-MPJPE aligns each frame by a similarity transform first. The cost of a "
         "calibration is its MPJPE minus gt's in the same trial (same keypoints), so keypoint "
         "noise common to both cancels.", ""]
+    lines += [f"**Warning:** {w}" for w in results.get("warnings", [])]
+    lines += [""] if results.get("warnings") else []
     for key, title in MEASURES:
         lines += [f"## {title}", "",
                   "| Cameras | Environment | Stage | " + " | ".join(names) + " |",

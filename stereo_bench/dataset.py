@@ -190,8 +190,13 @@ class Dataset:
         return len(self.trajectory)
 
     def image(self, camera: int | str, frame: int) -> np.ndarray:
-        cam = next(c for c in self.cameras if c.name == camera) if isinstance(camera, str) \
-            else self.cameras[camera]
+        if isinstance(camera, str):
+            by_name = {c.name: c for c in self.cameras}
+            if camera not in by_name:
+                raise ValueError(f"{self.root}: no camera {camera!r} (cameras: {list(by_name)})")
+            cam = by_name[camera]
+        else:
+            cam = self.cameras[camera]
         path = self.paths.image(cam.name, frame)
         img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         if img is None:

@@ -81,7 +81,10 @@ def plot_residuals(trial: TrialPaths, ds: Dataset, methods: list[str], path: Pat
     ax.set_xscale("log")
     ax.set_xlabel("reprojection residual (px)")
     ax.set_ylabel("points")
-    ax.legend(fontsize=8)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=8)
+    else:
+        ax.set_title("no method calibrated a camera", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
