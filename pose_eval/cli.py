@@ -23,7 +23,7 @@ from stereo_bench.calibrate import available_methods
 from stereo_bench.config import ConfigError, load_rig
 from stereo_bench.cli import say
 from stereo_bench.pipeline import Trial, load_run
-from stereo_bench.rundir import NAME_PATTERN, locked, write_json, write_text
+from stereo_bench.rundir import NAME_PATTERN, RunPaths, locked, write_json, write_text
 
 from .body import load_body_model
 from .fit import fit_smpl
@@ -113,7 +113,7 @@ def _methods(args, trials: list[Trial]) -> list[str]:
     for t in trials:
         if args.calib not in t.rigs:
             raise FileNotFoundError(
-                f"{Path(args.run) / 'trials' / f'seed_{t.seed}' / 'rig' / f'{args.calib}.json'}: "
+                f"{RunPaths(Path(args.run)).trial(t.seed).rig(args.calib)}: "
                 f"no rig of method {args.calib!r} in this run (methods found: "
                 f"{sorted(t.rigs) or 'none'})")
     return ["gt", args.calib]

@@ -31,6 +31,7 @@ from scipy.spatial import ConvexHull
 
 from stereo_bench.camera import Camera, compose, matrix_to_rodrigues, radial_fold_radius
 from stereo_bench.config import load_rig
+from stereo_bench.rundir import RunPaths
 
 from .body import forward, load_body_model, rest_skeleton, to_mm
 from .motion import make_motion
@@ -143,7 +144,8 @@ def make_scene(cameras: list[Camera], motion: str, frames: int, fps: float = 30.
 
 def run_description(run_dir) -> tuple[str, str]:
     """(rig name, environment kind) of a run, from its first trial's dataset/config.yaml."""
-    configs = sorted(Path(run_dir).glob("trials/seed_*/dataset/config.yaml"))
+    run = RunPaths(Path(run_dir))
+    configs = [p for p in (run.trial(s).dataset.config for s in run.trial_seeds()) if p.is_file()]
     if not configs:
         return Path(run_dir).name, "unknown"
     cfg = load_rig(configs[0])
