@@ -229,8 +229,9 @@ class RigConfig(_Strict):
         return [c.camera() for c in self.cameras]
 
 
-def _describe(err: ValidationError, source: str) -> str:
-    lines = [f"{source}: invalid rig configuration"]
+def describe(err: ValidationError, source: str, what: str = "rig configuration") -> str:
+    """A pydantic error as lines naming ``source`` and each field with what was expected."""
+    lines = [f"{source}: invalid {what}"]
     for e in err.errors():
         path = ".".join(str(p) for p in e["loc"]) or "(top level)"
         msg = e["msg"]
@@ -255,7 +256,7 @@ def parse_rig(data: dict, source: str = "<rig>") -> RigConfig:
     try:
         return RigConfig.model_validate(data)
     except ValidationError as e:
-        raise ConfigError(_describe(e, source)) from None
+        raise ConfigError(describe(e, source)) from None
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):

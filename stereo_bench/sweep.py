@@ -26,7 +26,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from .config import ConfigError, Int, Name, RigConfig, load_rig, load_yaml, parse_rig
+from .config import (ConfigError, Int, Name, RigConfig, describe, load_rig, load_yaml,
+                     parse_rig)
 from .report import fmt, run_title, write_report
 from .rundir import locked, write_json, write_text
 
@@ -63,9 +64,7 @@ def load_grid(path) -> tuple[GridConfig, list[RigConfig]]:
     try:
         grid = GridConfig.model_validate(data if isinstance(data, dict) else {"": data})
     except ValidationError as e:
-        fields = "; ".join(f"{'.'.join(map(str, x['loc'])) or '(top level)'}: "
-                           f"{x['msg'].removeprefix('Value error, ')}" for x in e.errors())
-        raise ConfigError(f"{path}: invalid grid file: {fields}") from None
+        raise ConfigError(describe(e, str(path), "grid file")) from None
     configs = []
     for i, rig_file in enumerate(grid.rigs):
         try:
