@@ -23,7 +23,7 @@ from stereo_bench.calibrate import available_methods
 from stereo_bench.config import ConfigError, load_rig
 from stereo_bench.cli import say
 from stereo_bench.pipeline import Trial, load_run
-from stereo_bench.rundir import NAME_PATTERN, RunPaths, locked, write_json, write_text
+from stereo_bench.rundir import RunPaths, is_safe_name, locked, write_json, write_text
 
 from .body import load_body_model
 from .fit import fit_smpl
@@ -282,8 +282,7 @@ def main(argv=None) -> int:
         args.run = DEFAULT_RUN
     try:
         results, examples = evaluate(args)
-        rig = results["rig"] if NAME_PATTERN.match(results["rig"]) and results["rig"] not in (
-            ".", "..") else "run"
+        rig = results["rig"] if is_safe_name(results["rig"]) else "run"
         out = Path(args.out or Path("out") / rig / "pose_eval")
         with locked(out):
             write_outputs(results, examples, out)

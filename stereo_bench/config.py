@@ -41,6 +41,8 @@ Int = Annotated[int, Strict()]
 Float = Annotated[float, Strict(), Field(allow_inf_nan=False)]
 Name = Annotated[str, Strict(), AfterValidator(lambda v: check_name(v, "name"))]
 Vec3 = tuple[Float, Float, Float]
+PatternKind = Literal["checkerboard", "symmetric_circles", "asymmetric_circles", "charuco"]
+EnvironmentKind = Literal["clean", "noisy"]
 
 
 class _Strict(BaseModel):
@@ -108,7 +110,7 @@ class CameraConfig(_Strict):
                       self.skew, np.array(self.dist), matrix_to_rodrigues(R), t)
 
 
-def _check_override(kind: str, field: dataclasses.Field, value):
+def _check_override(field: dataclasses.Field, value):
     """One pattern override, checked against the pattern class's field type and bounds."""
     if field.type in ("int", int):
         if not isinstance(value, int) or isinstance(value, bool):
@@ -135,7 +137,7 @@ class PatternConfig(_Strict):
     2 per direction keep every board two-dimensional (one row would be collinear)."""
 
     model_config = ConfigDict(extra="allow", frozen=True)
-    kind: Literal["checkerboard", "symmetric_circles", "asymmetric_circles", "charuco"]
+    kind: PatternKind
 
     @model_validator(mode="after")
     def _overrides(self):
@@ -147,7 +149,7 @@ class PatternConfig(_Strict):
             if name not in fields:
                 raise ValueError(f"pattern.{name}: unknown field for {self.kind} (fields: "
                                  f"{', '.join(sorted(fields))})")
-            self.model_extra[name] = _check_override(self.kind, fields[name], value)
+            self.model_extra[name] = _check_override(fields[name], value)
         board = self.build()
         w, h = board.size_mm
         if max(w, h) > MAX_BOARD_MM:
@@ -190,7 +192,7 @@ class EnvironmentConfig(_Strict):
     """Lighting and sensor: ``clean`` (uniform light, no noise) or ``noisy`` (directional light
     shading plus additive Gaussian noise of ``noise_sigma`` grey levels)."""
 
-    kind: Literal["clean", "noisy"] = "clean"
+    kind: EnvironmentKind = "clean"
     noise_sigma: Float = Field(6.0, ge=0, le=255)
     light_direction: Vec3 = (0.6, -0.5, 1.0)
     ambient: Float = Field(0.35, ge=0, le=1)

@@ -16,6 +16,7 @@ A camera or method that fails is recorded with its error message; the others go 
 
 from __future__ import annotations
 
+import shutil
 import time
 
 import numpy as np
@@ -132,6 +133,10 @@ def evaluate_dataset(ds: Dataset, methods: list[str], trial: TrialPaths, progres
     for m in methods:  # fail early on a typo, before any work
         get_calibrator(m)
     dets, detect_s, det_fp = load_or_detect(ds, trial, progress, notes)
+    # Estimates of an earlier calibration must not outlive it: a camera that fails now would
+    # otherwise leave its old estimate where the plots and the rig stage look for it.
+    trial.metrics.unlink(missing_ok=True)
+    shutil.rmtree(trial.all_calibrations, ignore_errors=True)
     start = time.perf_counter()
     gt = ds.ground_truth
     rig = ds.rig()

@@ -82,6 +82,11 @@ def rig_calibration(ds: Dataset, trial: TrialPaths, method: str) -> dict:
     }
 
 
+def rig_fingerprint(metrics_fp: str, method: str) -> str:
+    """What a rig calibration depends on: the calibrations it starts from, and its method."""
+    return fingerprint("rig", metrics_fp, method)
+
+
 def _dataset(cfg: RigConfig, trial: TrialPaths, dataset_dir: Path | None, progress,
              notes: Notes) -> Dataset:
     """The trial's dataset: an existing one (``dataset_dir``), or the trial's own, reused when
@@ -120,7 +125,7 @@ def run_trial(cfg: RigConfig, out: Path, methods: list[str], progress=None,
     report["rig"] = {}
     if with_rig and len(ds.cameras) >= 2:
         for m in methods:
-            rig_fp = fingerprint("rig", report["fingerprint"], m)
+            rig_fp = rig_fingerprint(report["fingerprint"], m)
             entry = reusable(trial.rig(m), rig_fp, notes, f"rig calibration of {m}")
             if entry is not None:
                 report["rig"][m] = entry
@@ -190,7 +195,9 @@ class Trial:
 
 def load_run(run_dir) -> list[Trial]:
     """The trials of a run directory written by ``stereo-bench RIG.yaml --out RUN_DIR``; a
-    trial whose dataset is incomplete is skipped, an unreadable rig file is an error naming it."""
+    trial whose dataset is incomplete is skipped, an unreadable rig file is an error naming it,
+    and a rig file left from an earlier configuration or method list (its fingerprint is not
+    the one of the trial's current calibrations) is not read: it would describe other cameras."""
     run = RunPaths(Path(run_dir))
     if not run.trials.is_dir():
         raise FileNotFoundError(f"{run.trials}: not found; is {run_dir} a run directory written "
@@ -203,10 +210,14 @@ def load_run(run_dir) -> list[Trial]:
             continue  # an interrupted trial (the true cameras are all pose-eval needs of it)
         truth = [Camera.from_dict(d, str(cams_file)) for d in read_json(cams_file)]
         rigs = {}
+        metrics = read_json(trial.metrics) if trial.metrics.is_file() else {}
         for path in sorted(trial.rigs.glob("*.json")):
             entry = read_json(path)
             if not isinstance(entry, dict) or "method" not in entry:
                 raise UnreadableFileError(f"{path}: not a rig calibration written by stereo-bench")
+            if entry.get("fingerprint") != rig_fingerprint(metrics.get("fingerprint"),
+                                                           entry["method"]):
+                continue
             rigs[entry["method"]] = entry["error"] if "error" in entry else [
                 Camera.from_dict(d, str(path)) for d in entry["cameras"]]
         trials.append(Trial(seed, truth, rigs))

@@ -48,10 +48,15 @@ os.umask(_UMASK)
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 
 
+def is_safe_name(name) -> bool:
+    """A name that can become a file or folder name: letters, digits, ``_``, ``-``, ``.``; at
+    most 64 characters; not ``.`` or ``..``."""
+    return isinstance(name, str) and bool(NAME_PATTERN.match(name)) and name not in (".", "..")
+
+
 def check_name(name: str, what: str) -> str:
-    """A name that becomes a file or folder name: letters, digits, ``_``, ``-``, ``.``; at most 64
-    characters; not ``.`` or ``..``. Raises ValueError naming ``what``."""
-    if not isinstance(name, str) or not NAME_PATTERN.match(name) or name in (".", ".."):
+    """``name`` if it is safe (``is_safe_name``), else a ValueError naming ``what``."""
+    if not is_safe_name(name):
         raise ValueError(f"{what}: {name!r} is not a safe name (expected 1-64 letters, digits, "
                          f"'_', '-' or '.', and not '.' or '..')")
     return name
@@ -151,15 +156,6 @@ def read_json(path):
         raise
     except (OSError, UnicodeDecodeError, ValueError) as e:
         raise UnreadableFileError(f"{path}: unreadable ({e})") from None
-
-
-def nan_from_null(x):
-    """Inverse of :func:`strict` for numbers read back: null becomes NaN, reason keys go."""
-    if isinstance(x, dict):
-        return {k: nan_from_null(v) for k, v in x.items() if not k.endswith("_reason")}
-    if isinstance(x, list):
-        return [nan_from_null(v) for v in x]
-    return math.nan if x is None else x
 
 
 # ----------------------------------------------------------------------------------------------
@@ -281,8 +277,12 @@ class TrialPaths:
     def detections_done(self) -> Path:
         return self.detections / "done.json"
 
+    @property
+    def all_calibrations(self) -> Path:
+        return self.root / "calibrations"
+
     def calibrations(self, method: str) -> Path:
-        return self.root / "calibrations" / method
+        return self.all_calibrations / method
 
     def calibration(self, method: str, camera: str) -> Path:
         return self.calibrations(method) / f"{camera}.json"

@@ -22,12 +22,11 @@ import time
 import traceback
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
-from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from .config import (ConfigError, Int, Name, RigConfig, describe, load_rig, load_yaml,
-                     parse_rig)
+from .config import (ConfigError, EnvironmentKind, Int, Name, PatternKind, RigConfig, describe,
+                     load_rig, load_yaml, parse_rig)
 from .report import fmt, run_title, write_report
 from .rundir import locked, write_json, write_text
 
@@ -36,9 +35,8 @@ class GridConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
     name: Name = "grid"
     rigs: list[str] = Field(min_length=1, max_length=100)
-    patterns: list[Literal["checkerboard", "symmetric_circles", "asymmetric_circles",
-                           "charuco"]] = Field(min_length=1)
-    environments: list[Literal["clean", "noisy"]] = Field(["clean"], min_length=1)
+    patterns: list[PatternKind] = Field(min_length=1)
+    environments: list[EnvironmentKind] = Field(["clean"], min_length=1)
     methods: list[str] = Field(["zhang", "tsai", "bouguet", "opencv"], min_length=1)
     trials: Int = Field(1, ge=1, le=1000)
     frames: Int | None = Field(None, gt=0, le=10_000)

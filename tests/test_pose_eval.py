@@ -22,7 +22,7 @@ from pose_eval.reconstruct import triangulate_joints
 from pose_eval.scene import in_true_world, in_view, make_scene, place_body, rig_axes
 from stereo_bench.camera import compose, invert, matrix_to_rodrigues, rodrigues_to_matrix
 from stereo_bench.config import load_rig
-from stereo_bench.pipeline import load_run
+from stereo_bench.pipeline import load_run, rig_fingerprint
 from stereo_bench.rundir import RunPaths, write_json
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -255,6 +255,8 @@ def write_run(root: Path, rig: Path, rigs: dict, seeds=(0,)) -> Path:
         trial.dataset.root.mkdir(parents=True)
         shutil.copy(rig, trial.dataset.config)
         write_json(trial.dataset.cameras, [c.to_dict() for c in truth])
+        # As stereo-bench does: rig files carry the fingerprint of the calibrations they used.
+        write_json(trial.metrics, {"fingerprint": "calibrations"})
         for method, est in rigs.items():
             if isinstance(est, str):
                 entry = {"method": method, "error": est}
@@ -265,7 +267,8 @@ def write_run(root: Path, rig: Path, rigs: dict, seeds=(0,)) -> Path:
                     rel.append(cam.with_params(rvec=matrix_to_rodrigues(R), tvec=t).to_dict())
                 entry = {"method": method, "reference": truth[0].name, "cameras": rel,
                          "rms_px": 0.1}
-            write_json(trial.rig(method), entry)
+            write_json(trial.rig(method),
+                       {**entry, "fingerprint": rig_fingerprint("calibrations", method)})
     return root
 
 

@@ -263,3 +263,24 @@ def test_pose_eval_refuses_meaningless_options(tmp_path, capsys):
                          "--out", str(tmp_path / "p")]) == 2
         assert option in capsys.readouterr().err
     assert not (tmp_path / "p").exists()
+
+
+def test_a_rerun_leaves_no_estimate_of_an_earlier_configuration(tmp_path):
+    from stereo_bench.pipeline import load_run
+
+    out = tmp_path / "run"
+    rig = small_rig(tmp_path)
+    assert main([str(rig), "--out", str(out), "--methods", "opencv,bouguet"]) == 0
+    trial = RunPaths(out).trial(7)
+    assert trial.calibration("opencv", "right").is_file()
+    # Fewer methods: pose-eval must not pick up the bouguet rig of the earlier run.
+    assert main([str(rig), "--out", str(out), "--methods", "opencv"]) == 0
+    assert set(load_run(out)[0].rigs) == {"opencv"}
+    # Camera 'right' now sees the board a few px wide: its old estimate must not be left behind.
+    d = yaml.safe_load(rig.read_text())
+    d["cameras"][1].update(fx=8.0, fy=8.0, dist=[0.0] * 8)
+    rig.write_text(yaml.safe_dump(d))
+    assert main([str(rig), "--out", str(out), "--methods", "opencv"]) == 0
+    assert "error" in results(out)["trials"][0]["calibration"]["opencv"]["right"]
+    assert not trial.calibration("opencv", "right").exists()
+    assert trial.calibration("opencv", "left").is_file()
