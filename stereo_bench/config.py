@@ -17,7 +17,7 @@ from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, Strict, Vali
                       field_validator, model_validator)
 
 from .camera import Camera, look_at_rotation, matrix_to_rodrigues
-from .rundir import check_name
+from .rundir import is_safe_name
 
 # Upper bounds that keep every input within what one machine can render and calibrate; beyond
 # them a run would end in a MemoryError or an overflow rather than in a result.
@@ -39,7 +39,16 @@ class ConfigError(ValueError):
 # Strict scalars: YAML's `true` is not 1, `"9"` is not 9, and NaN or infinity is no length.
 Int = Annotated[int, Strict()]
 Float = Annotated[float, Strict(), Field(allow_inf_nan=False)]
-Name = Annotated[str, Strict(), AfterValidator(lambda v: check_name(v, "name"))]
+
+
+def _safe_name(name: str) -> str:
+    if not is_safe_name(name):
+        raise ValueError(f"{name!r} is not a safe name (it becomes a folder name: expected 1-64 "
+                         f"letters, digits, '_', '-' or '.', and not '.' or '..')")
+    return name
+
+
+Name = Annotated[str, Strict(), AfterValidator(_safe_name)]
 Vec3 = tuple[Float, Float, Float]
 PatternKind = Literal["checkerboard", "symmetric_circles", "asymmetric_circles", "charuco"]
 EnvironmentKind = Literal["clean", "noisy"]

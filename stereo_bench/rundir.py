@@ -54,14 +54,6 @@ def is_safe_name(name) -> bool:
     return isinstance(name, str) and bool(NAME_PATTERN.match(name)) and name not in (".", "..")
 
 
-def check_name(name: str, what: str) -> str:
-    """``name`` if it is safe (``is_safe_name``), else a ValueError naming ``what``."""
-    if not is_safe_name(name):
-        raise ValueError(f"{what}: {name!r} is not a safe name (expected 1-64 letters, digits, "
-                         f"'_', '-' or '.', and not '.' or '..')")
-    return name
-
-
 # ----------------------------------------------------------------------------------------------
 # Strict, atomic files
 # ----------------------------------------------------------------------------------------------
