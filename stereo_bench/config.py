@@ -58,10 +58,9 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
-class CameraConfig(_Strict):
-    """One camera: intrinsics, OpenCV distortion and where it sits in the world (mm)."""
+class LensConfig(_Strict):
+    """A camera's image and lens: intrinsics and OpenCV distortion (px)."""
 
-    name: Name
     width: Int = Field(ge=2, le=MAX_IMAGE_SIDE)
     height: Int = Field(ge=2, le=MAX_IMAGE_SIDE)
     fx: Float = Field(gt=0, le=1e6)
@@ -71,9 +70,6 @@ class CameraConfig(_Strict):
     skew: Float = Field(0.0, ge=-1e4, le=1e4)
     dist: list[Float] = Field(default_factory=lambda: [0.0] * 8,
                               description="[k1, k2, p1, p2, k3, k4, k5, k6] (OpenCV order)")
-    position_mm: Vec3 = (0.0, 0.0, 0.0)
-    look_at_mm: Vec3 = (0.0, 0.0, 1000.0)
-    up: Vec3 = (0.0, -1.0, 0.0)
 
     @field_validator("dist")
     @classmethod
@@ -84,15 +80,8 @@ class CameraConfig(_Strict):
             raise ValueError("expected coefficients of magnitude at most 1e4")
         return list(v) + [0.0] * (8 - len(v))
 
-    @field_validator("position_mm", "look_at_mm")
-    @classmethod
-    def _in_reach(cls, v):
-        if max(abs(x) for x in v) > 1e6:
-            raise ValueError("expected coordinates within 1 km (1e6 mm) of the origin")
-        return v
-
     @model_validator(mode="after")
-    def _geometry(self):
+    def _image(self):
         if self.width * self.height > MAX_IMAGE_PIXELS:
             raise ValueError(f"width x height: {self.width}x{self.height} exceeds "
                              f"{MAX_IMAGE_PIXELS:,} pixels")
@@ -103,6 +92,29 @@ class CameraConfig(_Strict):
                 raise ValueError(f"{axis}: {c} lies outside the central 90 % of the image "
                                  f"(0..{size - 1} px); expected a principal point near the "
                                  f"image centre ({(size - 1) / 2})")
+        return self
+
+
+def _within_reach(v):
+    if max(abs(x) for x in v) > 1e6:
+        raise ValueError("expected coordinates within 1 km (1e6 mm) of the origin")
+    return v
+
+
+Position = Annotated[Vec3, AfterValidator(_within_reach)]
+
+
+class CameraConfig(LensConfig):
+    """One camera: its lens and where it sits in the world (mm), looking at ``look_at_mm`` with
+    ``up`` pointing up in its image."""
+
+    name: Name
+    position_mm: Position = (0.0, 0.0, 0.0)
+    look_at_mm: Position = (0.0, 0.0, 1000.0)
+    up: Vec3 = (0.0, -1.0, 0.0)
+
+    @model_validator(mode="after")
+    def _geometry(self):
         view = np.subtract(self.look_at_mm, self.position_mm)
         if np.linalg.norm(view) < 1e-6:
             raise ValueError("look_at_mm: expected a point other than position_mm")
@@ -117,6 +129,72 @@ class CameraConfig(_Strict):
         t = -R @ np.array(self.position_mm, dtype=np.float64)
         return Camera(self.name, self.width, self.height, self.fx, self.fy, self.cx, self.cy,
                       self.skew, np.array(self.dist), matrix_to_rodrigues(R), t)
+
+
+class StudioConfig(_Strict):
+    """Cameras placed around a capture volume, in a world with z up and the floor at z = 0.
+
+    ``ring``: ``count`` cameras on a circle of ``radius_mm`` around ``centre_mm``, spread
+    evenly over ``arc_deg`` from ``start_deg`` (360: a full ring; less: both ends of the arc get
+    a camera, e.g. 180 for a half ring). ``rectangle``: half of the cameras on each long side of
+    a ``size_mm`` (x, y) rectangle, evenly from corner to corner (4 cameras: the corners). Every
+    camera looks at ``look_at_mm``, upright. Heights and lenses are taken in turn from
+    ``height_mm`` and ``lenses`` (one entry: the same for all; a list: mixed)."""
+
+    layout: Literal["ring", "rectangle"]
+    count: Int = Field(ge=2, le=MAX_CAMERAS)
+    radius_mm: Float | None = Field(None, gt=0, le=1e5)
+    arc_deg: Float = Field(360.0, gt=0, le=360)
+    start_deg: Float = Field(0.0, ge=-360, le=360)
+    size_mm: tuple[Float, Float] | None = None
+    centre_mm: Position = (0.0, 0.0, 0.0)
+    height_mm: list[Float] = Field([1500.0], min_length=1, max_length=MAX_CAMERAS)
+    look_at_mm: Position = (0.0, 0.0, 1000.0)
+    lenses: list[LensConfig] = Field(min_length=1, max_length=MAX_CAMERAS)
+    names: list[Name] | None = None
+
+    @model_validator(mode="after")
+    def _layout(self):
+        if self.layout == "ring" and self.radius_mm is None:
+            raise ValueError("radius_mm: required for a ring")
+        if self.layout == "rectangle":
+            if self.size_mm is None or not 0 < min(self.size_mm) <= max(self.size_mm) <= 1e5:
+                raise ValueError("size_mm: a rectangle needs its (x, y) size, 0 < size <= 1e5 mm")
+            if self.count % 2:
+                raise ValueError(f"count: a rectangle puts half of its cameras on each long "
+                                 f"side; expected an even count, got {self.count}")
+        if self.names is not None and len(self.names) != self.count:
+            raise ValueError(f"names: expected {self.count} names (count), got "
+                             f"{len(self.names)}")
+        if max(abs(h) for h in self.height_mm) > 1e5:
+            raise ValueError("height_mm: expected heights within 100 m")
+        return self
+
+    def positions(self) -> np.ndarray:
+        """Camera centres (count, 3) mm."""
+        n = self.count
+        if self.layout == "ring":
+            full = self.arc_deg >= 360
+            angles = np.radians(self.start_deg + self.arc_deg * np.arange(n) / (n if full else
+                                                                             n - 1))
+            xy = self.radius_mm * np.column_stack([np.cos(angles), np.sin(angles)])
+        else:
+            w, d = self.size_mm
+            long_x = w >= d  # the long sides run along x when the rectangle is wider than deep
+            span, side = (w, d) if long_x else (d, w)
+            k = n // 2
+            along = span * (np.arange(k) / (k - 1) - 0.5) if k > 1 else np.zeros(1)
+            pts = [(a, s * side / 2) for s in (-1, 1) for a in (along if s < 0 else along[::-1])]
+            xy = np.array([(a, b) if long_x else (b, a) for a, b in pts])
+        z = np.resize(np.asarray(self.height_mm, dtype=np.float64), n)
+        return np.column_stack([xy, z]) + np.asarray(self.centre_mm)
+
+    def cameras(self) -> list[dict]:
+        """The cameras as rig-file entries (``cameras:``), named ``cam1`` ... unless ``names``."""
+        names = self.names or [f"cam{i + 1}" for i in range(self.count)]
+        return [{**self.lenses[i % len(self.lenses)].model_dump(), "name": names[i],
+                 "position_mm": tuple(float(v) for v in p), "look_at_mm": self.look_at_mm,
+                 "up": (0.0, 0.0, 1.0)} for i, p in enumerate(self.positions())]
 
 
 def _check_override(field: dataclasses.Field, value):
@@ -176,16 +254,30 @@ class PatternConfig(_Strict):
 
 
 class TrajectoryConfig(_Strict):
-    """The paper's conical spring: a helix around the rig's viewing axis whose radius grows
-    linearly with depth; the board centre always faces the rig, tilted by up to ``tilt_deg``."""
+    """How the board moves (rig.py builds the poses).
 
+    ``spring``: the paper's conical spring, a helix around the rig's viewing axis whose radius
+    grows linearly with depth (``depth_mm``, ``radius_mm``; None: chosen from the board size and
+    the narrowest camera's field of view); the board faces the rig, tilted by up to ``tilt_deg``.
+
+    ``session``: a calibration session in a studio that surrounds the volume: ``frames`` of the
+    board carried through the volume (within ``walk_radius_mm`` of its centre, its centre at
+    heights ``height_mm``), turned ``turns`` times about the vertical so that it faces every
+    camera in turn, tilted by up to ``tilt_deg``; then, when ``closeups`` > 0, that many frames
+    per camera of the board waved close in front of it (each camera's own conical spring, with
+    ``depth_mm``/``radius_mm`` if given), as studios take them for intrinsics.
+    """
+
+    kind: Literal["spring", "session"] = "spring"
     frames: Int = Field(127, gt=0, le=MAX_FRAMES)
-    # None: chosen from the board size and the narrowest camera's field of view (rig.py).
     depth_mm: tuple[Float, Float] | None = None
     radius_mm: tuple[Float, Float] | None = None
     turns: Float = Field(4.0, gt=0, le=1000)
     tilt_deg: Float = Field(30.0, ge=0, lt=80)
     roll_deg: Float = Field(20.0, ge=0, le=180)
+    closeups: Int = Field(0, ge=0, le=MAX_FRAMES)
+    walk_radius_mm: Float | None = Field(None, ge=0, le=1e5)
+    height_mm: tuple[Float, Float] | None = None
 
     @model_validator(mode="after")
     def _ranges(self):
@@ -194,7 +286,35 @@ class TrajectoryConfig(_Strict):
         if self.radius_mm is not None and not 0 <= min(self.radius_mm) <= max(
                 self.radius_mm) <= 1e6:
             raise ValueError("radius_mm: expected radii in 0..1e6 mm")
+        if self.kind == "spring":
+            for f in ("closeups", "walk_radius_mm", "height_mm"):
+                if f in self.model_fields_set:
+                    raise ValueError(f"{f}: only a session trajectory (kind: session) has it")
+        if self.height_mm is not None and not -1e5 <= self.height_mm[0] <= self.height_mm[1] \
+                <= 1e5:
+            raise ValueError("height_mm: expected (low, high) with low <= high, within 100 m")
         return self
+
+    def frames_for(self, cameras: int) -> int:
+        """Frames of the dataset: the walk, then the close-ups of every camera."""
+        return self.frames + (self.closeups * cameras if self.kind == "session" else 0)
+
+
+class CalibrationConfig(_Strict):
+    """How the calibrations are computed from the detections (not part of the rendered data:
+    editing it reuses the images and the detections).
+
+    ``intrinsics_views``: the views each camera's intrinsics come from: ``all``, only the
+    ``closeups`` of a session, or only the ``session`` (walk) frames. The rig stage always uses
+    every frame two cameras share. ``refine_intrinsics``: let the rig's bundle adjustment also
+    move each camera's intrinsics (the parameters its method estimates). ``loss``: the robust
+    loss of the rig's bundle adjustment (scipy's names; ``linear`` is plain least squares, the
+    cost cv2.stereoCalibrate minimizes), with residuals scaled by ``loss_scale_px``."""
+
+    intrinsics_views: Literal["all", "closeups", "session"] = "all"
+    refine_intrinsics: Annotated[bool, Strict()] = False
+    loss: Literal["linear", "soft_l1", "huber", "cauchy"] = "linear"
+    loss_scale_px: Float = Field(1.0, gt=0, le=100)
 
 
 class EnvironmentConfig(_Strict):
@@ -218,22 +338,47 @@ class EnvironmentConfig(_Strict):
 
 
 class RigConfig(_Strict):
+    """A rig file. The cameras are given as a list (``cameras``) or placed by a ``studio``
+    layout; a studio is expanded into the list when the file is read, so the resolved
+    configuration (the dataset's config.yaml) always lists every camera."""
+
     name: Name = "rig"
     seed: Int = Field(0, ge=0, lt=2**63)
-    cameras: list[CameraConfig] = Field(min_length=1, max_length=MAX_CAMERAS)
+    cameras: list[CameraConfig] = Field(default_factory=list, max_length=MAX_CAMERAS)
+    studio: StudioConfig | None = None
     pattern: PatternConfig
     trajectory: TrajectoryConfig = TrajectoryConfig()
     environment: EnvironmentConfig = EnvironmentConfig()
+    calibration: CalibrationConfig = CalibrationConfig()
 
     @model_validator(mode="after")
-    def _unique_names(self):
+    def _cameras(self):
+        if self.studio is not None:
+            if self.cameras:
+                raise ValueError("cameras: give either a list of cameras or a studio, not both")
+            cams = []
+            for entry in self.studio.cameras():
+                try:
+                    cams.append(CameraConfig.model_validate(entry))
+                except ValidationError as e:
+                    raise ValueError(f"studio: camera {entry['name']!r}: "
+                                     + describe(e, "", "camera").split("\n", 1)[1].strip())
+            # Frozen model: the expansion replaces the studio once, at validation.
+            object.__setattr__(self, "cameras", cams)
+            object.__setattr__(self, "studio", None)
+        if not self.cameras:
+            raise ValueError("cameras: expected at least one camera (or a studio)")
         names = [c.name for c in self.cameras]
         if len(set(names)) != len(names):
             raise ValueError(f"cameras: names must be unique, got {names}")
-        total = sum(c.width * c.height for c in self.cameras) * self.trajectory.frames
+        frames = self.trajectory.frames_for(len(self.cameras))
+        total = sum(c.width * c.height for c in self.cameras) * frames
         if total > 4e11:
-            raise ValueError(f"trajectory.frames: {self.trajectory.frames} frames of these "
+            raise ValueError(f"trajectory.frames: {frames} frames of these "
                              f"cameras are {total:.2g} pixels; expected at most 4e11")
+        if frames > MAX_FRAMES:
+            raise ValueError(f"trajectory.closeups: {frames} frames in all; expected at most "
+                             f"{MAX_FRAMES}")
         return self
 
     def cameras_true(self) -> list[Camera]:

@@ -35,7 +35,7 @@ from .rig import GroundTruth, Rig, Trajectory, coverage_warnings
 from .rundir import (DatasetPaths, UnreadableFileError, fingerprint, read_json, write_json,
                      write_npy, write_png, write_text)
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 TEXTURE_PX_PER_MM = 10.0
 
 
@@ -55,8 +55,10 @@ def render_settings(cfg: RigConfig) -> RenderSettings:
 
 
 def dataset_fingerprint(cfg: RigConfig) -> str:
-    """What a dataset depends on: the resolved configuration (seed included) and the format."""
-    return fingerprint("dataset", SCHEMA_VERSION, cfg.model_dump(mode="json"))
+    """What a dataset depends on: the resolved configuration (seed included) and the format;
+    not the calibration settings, which only the later stages read."""
+    return fingerprint("dataset", SCHEMA_VERSION,
+                       cfg.model_dump(mode="json", exclude={"calibration"}))
 
 
 class UnusableRigError(ConfigError):
@@ -107,6 +109,7 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None) -> "Dataset":
         "cam_from_world_tvec": np.stack([c.tvec for c in cams]),
         "world_from_board_rvec": rig.trajectory.rvecs,
         "world_from_board_tvec": rig.trajectory.tvecs,
+        "closeup_of": rig.closeup_of,
         "object_points": rig.pattern.object_points(),
         "ids": rig.pattern.ids(),
         "image_points": gt.points,
@@ -157,6 +160,7 @@ class Dataset:
     config: RigConfig
     cameras: list[Camera]
     trajectory: Trajectory
+    closeup_of: np.ndarray
     object_points: np.ndarray
     ids: np.ndarray
     ground_truth: GroundTruth
@@ -208,7 +212,7 @@ class Dataset:
 
     def rig(self) -> Rig:
         return Rig(self.config.name, self.config.seed, self.cameras, self.pattern,
-                   self.trajectory)
+                   self.trajectory, self.closeup_of)
 
     def check_images(self) -> None:
         """Refuse a dataset whose images are not the size of their camera (an image replaced
@@ -264,7 +268,7 @@ class Dataset:
             raise UnreadableFileError(f"{paths.cameras}: cameras do not match {mpath}")
         ds = cls(root, cfg, cams,
                  Trajectory(arr("world_from_board_rvec"), arr("world_from_board_tvec")),
-                 arr("object_points"), arr("ids"),
+                 arr("closeup_of"), arr("object_points"), arr("ids"),
                  GroundTruth(arr("image_points"), arr("visible")), manifest)
         ds.check_images()
         return ds

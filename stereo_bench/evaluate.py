@@ -23,6 +23,7 @@ import numpy as np
 
 from .calibrate import CalibrationResult, Observations, get_calibrator
 from .camera import Camera, matrix_to_rodrigues
+from .config import CalibrationConfig
 from .dataset import Dataset
 from .detect import CameraDetections, detect_dataset, detection_errors, resolve_method
 from .metrics import (parameter_errors, parameter_rmse, pose_errors, projection_difference,
@@ -34,13 +35,16 @@ MIN_SPREAD = 0.2  # the board points' minor extent relative to their major one
 
 
 def observations(det: CameraDetections, object_points: np.ndarray,
-                 camera: Camera) -> tuple[Observations, dict[int, str]]:
+                 camera: Camera, frames: np.ndarray | None = None,
+                 ) -> tuple[Observations, dict[int, str]]:
     """The found views of one camera, each with its detected (finite) points, and the found
     views left out with the reason: too few points, or points nearly on a line (a partial
     ChArUco view of one row), which leave a view's homography, and so every closed-form
-    initialization built on it, undetermined."""
+    initialization built on it, undetermined. ``frames`` (F,) bool: the frames the views may
+    come from (default: all)."""
     obj, img, ids, dropped = [], [], [], {}
-    for f in np.flatnonzero(det.found):
+    allowed = det.found if frames is None else det.found & frames
+    for f in np.flatnonzero(allowed):
         ok = np.isfinite(det.points[f]).all(axis=1)
         if ok.sum() < MIN_POINTS:
             dropped[int(f)] = f"{int(ok.sum())} points, need {MIN_POINTS}"
@@ -54,9 +58,12 @@ def observations(det: CameraDetections, object_points: np.ndarray,
         img.append(det.points[f, ok])
         ids.append(int(f))
     if not ids:
+        outside = int((det.found & ~allowed).sum())
         raise ValueError(f"camera {camera.name!r}: no usable view ({len(det.errors)} frames "
                          f"not found, e.g. {next(iter(det.errors.values()), '')!r}; "
-                         f"{len(dropped)} found views left out)")
+                         f"{len(dropped)} found views left out"
+                         + (f"; {outside} found views outside calibration.intrinsics_views"
+                            if outside else "") + ")")
     return Observations(obj, img, camera.size, ids, camera.name), dropped
 
 
@@ -118,13 +125,30 @@ def save_calibration(result: CalibrationResult, obs: Observations, trial: TrialP
               view_ids=np.array(obs.view_ids))
 
 
-def metrics_fingerprint(detections_fp: str, methods: list[str]) -> str:
-    return fingerprint("metrics", detections_fp, list(methods))
+def metrics_fingerprint(detections_fp: str, methods: list[str],
+                        calibration: CalibrationConfig) -> str:
+    return fingerprint("metrics", detections_fp, list(methods),
+                       calibration.model_dump(mode="json"))
+
+
+def intrinsics_frames(ds: Dataset, camera: int, calibration: CalibrationConfig) -> np.ndarray:
+    """(F,) bool: the frames camera ``camera``'s intrinsics may come from
+    (``calibration.intrinsics_views``: all, the camera's own close-ups, or the session walk)."""
+    which = calibration.intrinsics_views
+    if which == "closeups":
+        return ds.closeup_of == camera
+    if which == "session":
+        return ds.closeup_of < 0
+    return np.ones(ds.frames, bool)
 
 
 def evaluate_dataset(ds: Dataset, methods: list[str], trial: TrialPaths, progress=None,
-                     notes: Notes | None = None) -> dict:
+                     notes: Notes | None = None,
+                     calibration: CalibrationConfig | None = None) -> dict:
     """Detect, calibrate with each method, score; write everything under ``trial``.
+
+    ``calibration``: the settings of the calibration stage (default: the dataset's own; a run
+    passes its rig file's, which may have changed since the images were rendered).
 
     Returns the dict written to ``trial.metrics``: ``detection[camera]`` (rate and error
     against the truth), ``calibration[method][camera]`` (see ``score``, or ``{"error": ...}``),
@@ -132,6 +156,7 @@ def evaluate_dataset(ds: Dataset, methods: list[str], trial: TrialPaths, progres
     """
     for m in methods:  # fail early on a typo, before any work
         get_calibrator(m)
+    calibration = calibration or ds.config.calibration
     dets, detect_s, det_fp = load_or_detect(ds, trial, progress, notes)
     # Estimates of an earlier calibration must not outlive it: a camera that fails now would
     # otherwise leave its old estimate where the plots and the rig stage look for it.
@@ -141,7 +166,7 @@ def evaluate_dataset(ds: Dataset, methods: list[str], trial: TrialPaths, progres
     gt = ds.ground_truth
     rig = ds.rig()
     inside = ds.root.resolve().is_relative_to(trial.root.resolve())
-    report = {"fingerprint": metrics_fingerprint(det_fp, methods),
+    report = {"fingerprint": metrics_fingerprint(det_fp, methods, calibration),
               # Relative inside the trial, so that two runs into different folders agree.
               "dataset": (ds.root.resolve().relative_to(trial.root.resolve()).as_posix()
                           if inside else str(ds.root)),
@@ -155,7 +180,7 @@ def evaluate_dataset(ds: Dataset, methods: list[str], trial: TrialPaths, progres
         report["detection"][cam.name] = detection_errors(det, gt.points[c], gt.visible[c])
         truth = cam.with_params(rvec=np.zeros(3), tvec=np.zeros(3))
         try:
-            obs, dropped = observations(det, ds.object_points, cam)
+            obs, dropped = observations(det, ds.object_points, cam, intrinsics_frames(ds, c, calibration))
             report["detection"][cam.name]["views_left_out"] = dropped
         except ValueError as e:
             for m in methods:

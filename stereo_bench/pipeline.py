@@ -19,38 +19,82 @@ from pathlib import Path
 
 import numpy as np
 
+from .calibrate import get_calibrator
 from .camera import Camera
-from .config import RigConfig
+from .config import CalibrationConfig, RigConfig
 from .dataset import Dataset, dataset_fingerprint, write_dataset
 from .detect import CameraDetections
-from .evaluate import detections_fingerprint, evaluate_dataset, metrics_fingerprint
+from .evaluate import MIN_POINTS, detections_fingerprint, evaluate_dataset, metrics_fingerprint
+from .rig import volume_centre
 from .rundir import (Notes, RunPaths, TrialPaths, UnreadableFileError, fingerprint, locked,
                      read_json, reusable, strict, write_json)
-from .stereo import calibrate_rig, rig_errors
+from .stereo import aligned_rig_errors, calibrate_rig, planar_pose, rig_errors
 from .triangulate import triangulate
 
 
-def rig_calibration(ds: Dataset, trial: TrialPaths, method: str) -> dict:
+#: Shells of distance from the volume's centre in which RMSE_cal is also reported, mm.
+REGION_EDGES_MM = (0.0, 500.0, 1000.0, 1500.0, 2000.0, np.inf)
+
+
+def _board_poses(ds: Dataset, trial: TrialPaths, method: str, cam: Camera,
+                 det: CameraDetections) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame cam_from_board (F, 3) x 2 for one camera: the poses its own calibration found,
+    and for the other frames it detected (not among the views its intrinsics came from, see
+    calibration.intrinsics_views) a planar pose through its estimate; NaN elsewhere."""
+    F = ds.frames
+    r, t = np.full((F, 3), np.nan), np.full((F, 3), np.nan)
+    with np.load(trial.views(method, cam.name)) as z:
+        r[z["view_ids"]], t[z["view_ids"]] = z["rvecs"], z["tvecs"]
+    for f in np.flatnonzero(det.found & ~np.isfinite(r).all(axis=1)):
+        ok = np.isfinite(det.points[f]).all(axis=1)
+        if ok.sum() < MIN_POINTS:
+            continue
+        try:
+            r[f], t[f] = planar_pose(cam, ds.object_points[ok], det.points[f, ok])
+        except (ValueError, np.linalg.LinAlgError):
+            continue  # a view the estimate cannot undistort starts nothing
+    return r, t
+
+
+def _by_region(true_pts: np.ndarray, err: np.ndarray, centre: np.ndarray) -> list[dict]:
+    """RMSE_cal per shell of distance from the volume's centre (REGION_EDGES_MM)."""
+    d = np.linalg.norm(true_pts - centre, axis=-1)
+    rows = []
+    for lo, hi in zip(REGION_EDGES_MM, REGION_EDGES_MM[1:]):
+        inside = (d >= lo) & (d < hi)
+        if inside.any():
+            rows.append({"from_mm": lo, "to_mm": hi, "points": int(inside.sum()),
+                         "rmse_cal_mm": float(np.sqrt(np.mean(err[inside] ** 2)))})
+    return rows
+
+
+def rig_calibration(ds: Dataset, trial: TrialPaths, method: str,
+                    calibration: CalibrationConfig) -> dict:
     """Calibrate the rig from one method's per-camera estimates and score it against the truth.
 
     RMSE_cal (paper Sec. 4.2): the board's feature points triangulated in every frame through the
     estimated rig (DLT then reprojection refinement) against their true positions, both in the
-    reference camera's frame, in mm; ``centre_rmse_mm`` does the same for the board's centre
-    (the mean of the triangulated points of a frame against the mean of the true ones).
+    reference camera's frame, in mm, over the whole volume and per shell of distance from its
+    centre (the point nearest every camera's axis for a studio, else the mean board point);
+    ``centre_rmse_mm`` does the same for the board's centre (the mean of the triangulated points
+    of a frame against the mean of the true ones). Per camera: rotation and centre errors with
+    the reference camera fixed, and again after a similarity alignment (3+ cameras), beside the
+    reprojection error, so that a low reprojection error cannot hide a wrong geometry.
     """
-    cams, rv, tv = [], [], []
-    F = ds.frames
     dets = [CameraDetections.load(trial.detection(c.name)) for c in ds.cameras]
-    for cam in ds.cameras:
-        cams.append(Camera.load_json(trial.calibration(method, cam.name)))
-        with np.load(trial.views(method, cam.name)) as z:
-            r, t = np.full((F, 3), np.nan), np.full((F, 3), np.nan)
-            r[z["view_ids"]], t[z["view_ids"]] = z["rvecs"], z["tvecs"]
+    cams, rv, tv = [], [], []
+    for cam, det in zip(ds.cameras, dets):
+        est = Camera.load_json(trial.calibration(method, cam.name))
+        r, t = _board_poses(ds, trial, method, est, det)
+        cams.append(est)
         rv.append(r)
         tv.append(t)
     image_points = np.stack([d.points for d in dets])
     found = np.stack([d.found for d in dets])
-    rig = calibrate_rig(cams, ds.object_points, image_points, np.stack(rv), np.stack(tv), found)
+    params = get_calibrator(method).model_parameters if calibration.refine_intrinsics else None
+    rig = calibrate_rig(cams, ds.object_points, image_points, np.stack(rv), np.stack(tv), found,
+                        refine_intrinsics=[params] * len(cams) if params else None,
+                        loss=calibration.loss, loss_scale_px=calibration.loss_scale_px)
 
     # Truth in the true reference camera's frame.
     truth = ds.cameras
@@ -61,8 +105,12 @@ def rig_calibration(ds: Dataset, trial: TrialPaths, method: str) -> dict:
     err = np.linalg.norm(est_pts - true_pts, axis=-1)[ok]
     frames = ok.all(axis=1)
     centre_err = np.linalg.norm(est_pts[frames].mean(1) - true_pts[frames].mean(1), axis=-1)
+    try:
+        centre = truth[0].world_to_cam(volume_centre(truth))
+    except ValueError:  # cameras that look one way: the middle of the board's path
+        centre = true_pts.reshape(-1, 3).mean(0)
     errors = rig_errors(rig.cameras, truth)
-    return {
+    entry = {
         "method": method,
         "reference": truth[0].name,
         "cameras": [c.to_dict() for c in rig.cameras],
@@ -76,10 +124,24 @@ def rig_calibration(ds: Dataset, trial: TrialPaths, method: str) -> dict:
         "max_error_mm": float(err.max()) if len(err) else float("nan"),
         "centre_rmse_mm": float(np.sqrt(np.mean(centre_err**2))) if len(centre_err)
         else float("nan"),
+        "rmse_cal_by_region": _by_region(true_pts[ok], err, centre),
         "points_triangulated": int(ok.sum()),
         "rig_errors": {k: v[1:] for k, v in errors.items()},  # camera 0 is 0 by construction
+        "camera_errors": {c.name: {"rotation_deg": float(errors["rotation_deg"][i]),
+                                   "centre_mm": float(errors["centre_mm"][i]),
+                                   "rms_px": float(rig.rms_px_per_camera[i])}
+                          for i, c in enumerate(truth)},
         "log": rig.log,
     }
+    try:
+        aligned = aligned_rig_errors(rig.cameras, truth)
+        entry["aligned"] = {"scale": aligned["scale"], "cameras": {
+            c.name: {"rotation_deg": float(aligned["rotation_deg"][i]),
+                     "centre_mm": float(aligned["centre_mm"][i])} for i, c in enumerate(truth)}}
+    except ValueError as e:
+        entry["aligned"] = None
+        entry["aligned_reason"] = str(e)
+    return entry
 
 
 def rig_fingerprint(metrics_fp: str, method: str) -> str:
@@ -118,10 +180,10 @@ def run_trial(cfg: RigConfig, out: Path, methods: list[str], progress=None,
     trial = RunPaths(Path(out)).trial(cfg.seed)
     notes = Notes()
     ds = _dataset(cfg, trial, dataset_dir, progress, notes)
-    expected = metrics_fingerprint(detections_fingerprint(ds), methods)
+    expected = metrics_fingerprint(detections_fingerprint(ds), methods, cfg.calibration)
     report = reusable(trial.metrics, expected, notes, "calibration")
     if report is None:
-        report = evaluate_dataset(ds, methods, trial, progress, notes)
+        report = evaluate_dataset(ds, methods, trial, progress, notes, cfg.calibration)
     report["rig"] = {}
     if with_rig and len(ds.cameras) >= 2:
         for m in methods:
@@ -135,7 +197,7 @@ def run_trial(cfg: RigConfig, out: Path, methods: list[str], progress=None,
             try:
                 if failed:
                     raise ValueError(f"a camera's calibration failed: {failed[0]}")
-                entry = strict(rig_calibration(ds, trial, m))
+                entry = strict(rig_calibration(ds, trial, m, cfg.calibration))
             except (ValueError, np.linalg.LinAlgError, RuntimeError, OSError) as e:
                 entry = {"method": m, "error": f"{type(e).__name__}: {e}"}
             entry["fingerprint"] = rig_fp

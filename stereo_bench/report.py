@@ -37,7 +37,16 @@ RIG_COLUMNS = [
     ("rel. rotation err deg", ("rig_errors", "rotation_deg")),
     ("rel. translation err mm", ("rig_errors", "translation_mm")),
     ("baseline err mm", ("rig_errors", "baseline_mm")),
+    ("centre err mm", ("rig_errors", "centre_mm")),
     ("stereo RMS px", ("rms_px",)),
+]
+# Per camera of a rig: errors with the reference camera fixed, then after a similarity alignment.
+RIG_CAMERA_COLUMNS = [
+    ("rotation err deg", ("camera_errors", "rotation_deg")),
+    ("centre err mm", ("camera_errors", "centre_mm")),
+    ("aligned rotation err deg", ("aligned", "rotation_deg")),
+    ("aligned centre err mm", ("aligned", "centre_mm")),
+    ("RMS px", ("camera_errors", "rms_px")),
 ]
 DETECTION_COLUMNS = [
     ("rate", ("detection_rate",)),
@@ -100,11 +109,83 @@ def aggregate(trials: list[dict]) -> dict:
             row = {title: summarize([_get(e, path) for e in entries]) for title, path in RIG_COLUMNS}
             row["failures"] = [e["error"] for e in entries if "error" in e]
             agg["rig"][m] = row
+        if len(first["cameras"]) > 2:
+            agg.update(_studio(trials))
     agg["warnings"] = sorted({w for t in trials for w in t.get("warnings", [])})
     agg["notes"] = [n for t in trials for n in t.get("notes", [])]
     agg["timing"] = {k: summarize([t.get("timing", {}).get(k, math.nan) for t in trials])
                      for k in ("render_s", "detect_s", "calibrate_s", "rig_s")}
     return agg
+
+
+def _camera_value(entry: dict, cam: str, path: tuple) -> float:
+    group, key = path
+    block = entry.get(group) or {}
+    if group == "aligned":
+        block = block.get("cameras", {})
+    value = block.get(cam, {}).get(key)
+    return math.nan if value is None else float(value)
+
+
+def _studio(trials: list[dict]) -> dict:
+    """For rigs of 3+ cameras: per camera and method the rig's errors (RIG_CAMERA_COLUMNS), the
+    RMSE_cal per shell of distance from the volume's centre, and the covisibility of the first
+    trial (frames each pair of cameras saw together, from the detections)."""
+    first = trials[0]
+    out = {"rig_cameras": {}, "rig_regions": {}, "covisibility": None}
+    for m in first["methods"]:
+        entries = [t["rig"][m] for t in trials if "error" not in t["rig"][m]]
+        if not entries:
+            continue
+        out["rig_cameras"][m] = {
+            cam: {title: summarize([_camera_value(e, cam, path) for e in entries])
+                  for title, path in RIG_CAMERA_COLUMNS} for cam in first["cameras"]}
+        shells = {(r["from_mm"], r["to_mm"]): [] for e in entries
+                  for r in e.get("rmse_cal_by_region", [])}
+        for e in entries:
+            for r in e.get("rmse_cal_by_region", []):
+                shells[(r["from_mm"], r["to_mm"])].append(r["rmse_cal_mm"])
+        out["rig_regions"][m] = [{"from_mm": lo, "to_mm": hi, "rmse_cal_mm": summarize(v)}
+                                 for (lo, hi), v in sorted(shells.items())]
+        if out["covisibility"] is None:
+            out["covisibility"] = {"cameras": first["cameras"],
+                                   "frames": entries[0]["log"]["covisibility"]}
+    return out
+
+
+def _studio_markdown(agg: dict) -> list[str]:
+    lines = ["", "## Per camera of the rig", "",
+             "Errors of each camera's pose in the reference camera's frame, then after the "
+             "similarity that best maps the estimated camera centres onto the true ones (what "
+             "is left once the choice of reference and the scale are forgiven), beside the "
+             "reprojection error: a low RMS px does not mean a right geometry.", "",
+             "| camera | method | " + " | ".join(t for t, _ in RIG_CAMERA_COLUMNS) + " |",
+             "|---|---|" + "---|" * len(RIG_CAMERA_COLUMNS)]
+    for m, cams in agg["rig_cameras"].items():
+        for cam, row in cams.items():
+            lines.append(f"| {cam} | {m} | "
+                         + " | ".join(fmt(row[t]) for t, _ in RIG_CAMERA_COLUMNS) + " |")
+    shells = sorted({(r["from_mm"], r["to_mm"]) for rows in agg["rig_regions"].values()
+                     for r in rows}, key=lambda s: s[0])
+    if shells:
+        def label(lo, hi):
+            return f"{lo / 1000:g}-{hi / 1000:g} m" if hi is not None else f">{lo / 1000:g} m"
+        lines += ["", "RMSE_cal (mm) by distance of the board's points from the volume's "
+                  "centre:", "", "| method | " + " | ".join(label(*s) for s in shells) + " |",
+                  "|---|" + "---|" * len(shells)]
+        for m, rows in agg["rig_regions"].items():
+            by = {(r["from_mm"], r["to_mm"]): r["rmse_cal_mm"] for r in rows}
+            lines.append(f"| {m} | " + " | ".join(
+                fmt(by[s]) if s in by else "-" for s in shells) + " |")
+    cov = agg.get("covisibility")
+    if cov:
+        names = cov["cameras"]
+        lines += ["", "Frames in which each pair of cameras detected the board together "
+                  "(diagonal: frames each camera detected it; first trial):", "",
+                  "| | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+        for name, row in zip(names, cov["frames"]):
+            lines.append(f"| {name} | " + " | ".join(str(v) for v in row) + " |")
+    return lines
 
 
 def fmt(s: dict, digits: int = 3) -> str:
@@ -155,6 +236,8 @@ def markdown(agg: dict, title: str) -> str:
         for m, row in agg["rig"].items():
             lines.append(f"| {m} | " + " | ".join(fmt(row[t]) for t, _ in RIG_COLUMNS) + " |")
             failures += [f"- rig / {m}: {msg}" for msg in row["failures"]]
+        if agg.get("rig_cameras"):
+            lines += _studio_markdown(agg)
     if failures:
         lines += ["", "## Failures", ""] + failures
     if agg.get("warnings"):

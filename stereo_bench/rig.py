@@ -1,11 +1,16 @@
-"""A rig in motion: true cameras, the board, and the paper's conical-spring trajectory.
+"""A rig in motion: true cameras, the board, and its trajectory.
 
-The board centre follows a helix around the rig's viewing axis whose radius grows linearly with
-depth (a conical spring, paper Sec. 2), with the board always facing the rig's centre and
-tilted by a fixed angle about an axis that turns at a different rate than the helix, plus an
-in-plane roll, so that the views span the orientations planar calibration needs (Zhang 2000:
-views must not be parallel). Ground truth: per camera and frame, the true image positions of
-the board's feature points and whether each one is seen.
+Two trajectories. The paper's conical spring, for rigs whose cameras look the same way: the
+board centre follows a helix around the rig's viewing axis whose radius grows linearly with
+depth (paper Sec. 2), with the board always facing the rig's centre and tilted by a fixed angle
+about an axis that turns at a different rate than the helix, plus an in-plane roll, so that the
+views span the orientations planar calibration needs (Zhang 2000: views must not be parallel).
+And a calibration session, for studios that surround the volume: the board carried through the
+volume and turned about the vertical so that it faces each camera in turn (a camera sees only
+the frames in which the board's printed front faces it), then optionally waved close in front
+of each camera in turn (that camera's own conical spring), as studios do for intrinsics.
+Ground truth: per camera and frame, the true image positions of the board's feature points and
+whether each one is seen.
 """
 
 from __future__ import annotations
@@ -84,7 +89,8 @@ def conical_spring(
     if np.linalg.norm(axis) < 0.3:
         raise ValueError("cameras: their optical axes point in opposing directions (mean axis "
                          f"length {np.linalg.norm(axis):.2f}); the conical spring is built along "
-                         "the rig's common viewing direction, which such a rig does not have")
+                         "the rig's common viewing direction, which such a rig does not have: "
+                         "for a studio that surrounds the volume, use trajectory.kind: session")
     axis /= np.linalg.norm(axis)
     # Image "right" of the rig, orthogonal to the axis: keeps the board upright in the images.
     right = np.stack([c.R[0] for c in cameras]).mean(0)
@@ -120,6 +126,99 @@ def conical_spring(
     return Trajectory(matrix_to_rodrigues(R), t)
 
 
+def world_up(cameras: list[Camera]) -> np.ndarray:
+    """The world's up direction seen by upright cameras: the mean of their image -y axes."""
+    up = -np.stack([c.R[1] for c in cameras]).mean(0)
+    if np.linalg.norm(up) < 0.3:
+        raise ValueError("cameras: their image 'up' directions disagree (e.g. cameras rolled "
+                         "by 180 degrees); a session needs upright cameras to know the vertical")
+    return up / np.linalg.norm(up)
+
+
+def volume_centre(cameras: list[Camera]) -> np.ndarray:
+    """The point nearest to every camera's optical axis (least squares), (3,) mm: for cameras
+    that all look at one point, that point. Raises ValueError when the axes are (nearly)
+    parallel, as for a stereo pair: such a rig has no centre to surround."""
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for c in cameras:
+        P = np.eye(3) - np.outer(c.R[2], c.R[2])  # projects out the axis direction
+        A += P
+        b += P @ c.center
+    w = np.linalg.eigvalsh(A)
+    if w[0] < 0.05 * len(cameras):
+        raise ValueError("cameras: their optical axes are nearly parallel, so they do not meet "
+                         "around a capture volume; a session trajectory needs cameras that "
+                         "surround it (use trajectory.kind: spring for a rig that looks one way)")
+    return np.linalg.solve(A, b)
+
+
+def _rotation_about(axis_index: int, angle: np.ndarray) -> np.ndarray:
+    axis = np.zeros(3)
+    axis[axis_index] = 1.0
+    return _axis_angle(axis, angle)
+
+
+def session(cameras: list[Camera], board_centre: np.ndarray, board_radius: float,
+            cfg: TrajectoryConfig) -> tuple[Trajectory, np.ndarray]:
+    """world_from_board poses of a studio calibration session, and per frame the index of the
+    camera whose close-up it is (-1 for the walk). See the module notes and TrajectoryConfig.
+
+    The walk: the board centre follows a 3:2 Lissajous curve of radius ``walk_radius_mm``
+    (default: 35 % of the nearest camera's horizontal distance) around the volume's centre,
+    while its height oscillates over ``height_mm`` (default: the centre +- 500 mm, at most 15 %
+    of that distance) at an incommensurate rate; its printed front faces the horizontal
+    direction psi, which turns ``turns`` times, starting towards the first camera; it is tilted
+    about its own x and y axes (up to ``tilt_deg``) and rolled (up to ``roll_deg``) at rates
+    incommensurate with the turn, so that each camera sees it from varied angles.
+    """
+    centre, up = volume_centre(cameras), world_up(cameras)
+    to_first = cameras[0].center - centre
+    e1 = to_first - (to_first @ up) * up
+    if np.linalg.norm(e1) < 1e-6:
+        raise ValueError(f"camera {cameras[0].name!r}: directly above or below the volume's "
+                         "centre; a session needs it to stand around the volume")
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    horizontal = []
+    for c in cameras:
+        v = c.center - centre
+        horizontal.append(np.linalg.norm(v - (v @ up) * up))
+    reach = min(horizontal)
+    r = cfg.walk_radius_mm if cfg.walk_radius_mm is not None else 0.35 * reach
+    half = min(500.0, 0.15 * reach)
+    lo, hi = cfg.height_mm if cfg.height_mm is not None else (
+        centre @ up - half, centre @ up + half)
+
+    s = np.linspace(0.0, 1.0, cfg.frames)
+    tau = 2 * np.pi * s
+    height = 0.5 * (lo + hi) + 0.5 * (hi - lo) * np.sin(5.3 * tau)
+    p = (centre - (centre @ up) * up + height[:, None] * up
+         + r * np.sin(3 * tau)[:, None] * e1 + r * np.sin(2 * tau + np.pi / 4)[:, None] * e2)
+    psi = cfg.turns * tau
+    facing_dir = np.cos(psi)[:, None] * e1 + np.sin(psi)[:, None] * e2  # towards the viewers
+    z = -facing_dir  # OpenCV boards: +z points away from a camera that sees the front
+    y = np.broadcast_to(-up, z.shape)  # the board's y runs down, as in an upright camera
+    x = np.cross(y, z)
+    facing = np.stack([x, y, z], axis=-1)
+    tilt = np.radians(cfg.tilt_deg)
+    R = (facing @ _rotation_about(0, tilt * np.sin(3.7 * tau))
+         @ _rotation_about(1, tilt * np.sin(2.3 * tau + 1.0))
+         @ _rotation_about(2, np.radians(cfg.roll_deg) * np.sin(1.7 * tau)))
+    rvecs, tvecs = [matrix_to_rodrigues(R)], [p - R @ board_centre]
+    closeup_of = [np.full(cfg.frames, -1)]
+    if cfg.closeups:
+        # Each camera's own spring: the board waved in front of it alone, near enough to fill
+        # much of its image (spring_extent's defaults), two turns of the helix.
+        spring = cfg.model_copy(update={"kind": "spring", "frames": cfg.closeups, "turns": 2.0})
+        for i, cam in enumerate(cameras):
+            tr = conical_spring([cam], board_centre, board_radius, spring)
+            rvecs.append(tr.rvecs)
+            tvecs.append(tr.tvecs)
+            closeup_of.append(np.full(cfg.closeups, i))
+    return (Trajectory(np.concatenate(rvecs), np.concatenate(tvecs)),
+            np.concatenate(closeup_of))
+
+
 @dataclass(frozen=True, eq=False)
 class GroundTruth:
     """Exact image positions of the feature points.
@@ -134,13 +233,18 @@ class GroundTruth:
 
 @dataclass(frozen=True, eq=False)
 class Rig:
-    """Everything a render needs: the true cameras, the board and its trajectory."""
+    """Everything a render needs: the true cameras, the board and its trajectory.
+
+    closeup_of: (F,) int, per frame the index of the camera whose close-up it is (a session's
+    close-ups), -1 for every other frame.
+    """
 
     name: str
     seed: int
     cameras: list[Camera]
     pattern: object
     trajectory: Trajectory
+    closeup_of: np.ndarray
 
     @classmethod
     def from_config(cls, cfg: RigConfig) -> "Rig":
@@ -150,9 +254,16 @@ class Rig:
         pattern = pattern_from_config(cfg.pattern.kind, **cfg.pattern.overrides())
         obj = pattern.object_points()
         centre = 0.5 * (obj.min(0) + obj.max(0))
-        w, h = pattern.size_mm
-        return cls(cfg.name, cfg.seed, cameras, pattern,
-                   conical_spring(cameras, centre, 0.5 * np.hypot(w, h), cfg.trajectory))
+        radius = 0.5 * np.hypot(*pattern.size_mm)
+        if cfg.trajectory.kind == "session":
+            try:
+                trajectory, closeup_of = session(cameras, centre, radius, cfg.trajectory)
+            except ValueError as e:
+                raise ValueError(f"trajectory.kind session: {e}") from None
+        else:
+            trajectory = conical_spring(cameras, centre, radius, cfg.trajectory)
+            closeup_of = np.full(len(trajectory), -1)
+        return cls(cfg.name, cfg.seed, cameras, pattern, trajectory, closeup_of)
 
     def board_points_world(self) -> np.ndarray:
         """Feature points in the world per frame, (F, N, 3) mm."""

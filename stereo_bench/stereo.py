@@ -14,13 +14,18 @@ camera's own calibration, ``board_rvecs, board_tvecs (C, F, 3)`` (NaN where not 
    The translation is the coordinate-wise median of ``t_b - R t_a`` over the kept frames, with the
    averaged R. Cameras are joined to camera 0 along a maximum spanning tree of the shared-frame
    counts (Prim), so a camera that shares no frame with camera 0 is chained through others.
-2. Joint refinement over all frames seen by two or more cameras (a frame seen by one camera says
-   nothing about the rig once intrinsics are fixed): one cam0_from_board pose per frame, one
-   cam_from_cam0 per camera (camera 0's is the identity), intrinsics fixed, residuals = pixel
-   reprojection errors through ``camera.project_with_jacobians``. The Jacobian is analytic and
-   sparse (a frame pose touches only that frame's residuals) and goes to scipy's
-   ``least_squares`` ('trf', x_scale='jac'). This is the cost cv2.stereoCalibrate minimizes with
-   CALIB_FIX_INTRINSIC, for any number of cameras.
+2. Joint refinement, a bundle adjustment over one cam0_from_board pose per frame and one
+   cam_from_cam0 per camera (camera 0's is the identity: the gauge; the board's known geometry
+   fixes the scale), residuals = pixel reprojection errors through
+   ``camera.project_with_jacobians``. Intrinsics are fixed by default, and then only frames seen
+   by two or more cameras are used (a frame seen by one camera says nothing about the rig): the
+   cost cv2.stereoCalibrate minimizes with CALIB_FIX_INTRINSIC, for any number of cameras.
+   Optionally each camera's intrinsics join the adjustment (the OpenCV-model parameters its
+   method estimates), and then every frame any camera saw is used, since each constrains that
+   camera's intrinsics. The Jacobian is analytic and sparse (a frame pose touches only that
+   frame's residuals, a camera's intrinsics only that camera's) and goes to scipy's
+   ``least_squares`` ('trf', x_scale='jac'), with an optional robust loss (soft_l1, huber,
+   cauchy: a wrong corner then pulls the rig less than its square would).
 """
 
 from __future__ import annotations
@@ -34,9 +39,11 @@ import scipy.sparse
 from scipy.optimize import least_squares
 
 from .calibrate.base import MIN_POINTS_PER_VIEW
-from .camera import (Camera, compose, geodesic_distance, invert, matrix_to_rodrigues,
-                     nearest_rotation, project_with_jacobians, rodrigues_to_matrix,
-                     rotate_jacobian)
+from .calibrate.homography import fit_homography
+from .calibrate.zhang import extrinsics_from_homography
+from .camera import (DIST_NAMES, INTRINSIC_NAMES, Camera, compose, geodesic_distance, invert,
+                     matrix_to_rodrigues, nearest_rotation, project_with_jacobians,
+                     rodrigues_to_matrix, rotate_jacobian)
 
 MIN_OUTLIER_DEG = 0.1  # rotation-averaging inlier radius never goes below this
 
@@ -47,12 +54,15 @@ class RigCalibration:
 
     cameras: the input intrinsics with cam_from_world = cam_from_cam0.
     board_rvecs, board_tvecs: (F, 3) cam0_from_board per frame; NaN for frames not used.
-    frames_used: (F,) bool, the frames seen by two or more cameras.
+    frames_used: (F,) bool, the frames in the adjustment (seen by two or more cameras; by one or
+    more when intrinsics are refined).
     rms_px: RMS reprojection error (px per point) over all observations; rms_px_per_camera (C,).
     iterations: Jacobian evaluations of the solver; time_s: wall time of the whole calibration.
-    log: initial_rms_px, nfev, status and message of the solver, n_observations, and
-    "initialization": per camera its name, the camera it was chained from ("parent"), the frames
-    they share and the frames kept by the rotation average.
+    log: initial_rms_px, nfev, status and message of the solver, n_observations, loss,
+    refined_intrinsics (per camera the parameters adjusted), "covisibility" (frames each pair of
+    cameras saw together, C x C; the diagonal: frames each camera saw) and "initialization": per
+    camera its name, the camera it was chained from ("parent"), the frames they share and the
+    frames kept by the rotation average.
     """
 
     cameras: list[Camera]
@@ -124,24 +134,36 @@ def initial_rig(board_R: np.ndarray, board_t: np.ndarray, seen: np.ndarray,
 # Joint refinement
 # ----------------------------------------------------------------------------------------------
 
+MODEL_PARAMETERS = INTRINSIC_NAMES + DIST_NAMES  # a camera's intrinsics as the adjustment sees them
+
+
 class _RigProblem:
     """Residuals and sparse Jacobian of the rig's reprojection errors.
 
-    x = [cam_from_cam0 (rvec, tvec) of cameras 1..C-1, cam0_from_board of each used frame].
+    x = [cam_from_cam0 (rvec, tvec) of cameras 1..C-1, the free intrinsics of each camera in
+    turn (``free[c]``, a mask over MODEL_PARAMETERS), cam0_from_board of each used frame].
     Residuals are ordered camera by camera, observation by observation, (u, v).
     """
 
-    def __init__(self, cameras, object_points, image_points, valid):
+    def __init__(self, cameras, object_points, image_points, valid, free):
         self.cameras, self.obj = cameras, object_points
         self.C, self.F = len(cameras), valid.shape[1]
         self.n_rig = 6 * (self.C - 1)
+        self.free = free
+        self.params0 = [np.concatenate([c.intrinsics, c.dist]) for c in cameras]
+        sizes = [int(m.sum()) for m in free]
+        self.intr_at = self.n_rig + np.concatenate([[0], np.cumsum(sizes)])
+        self.n_head = int(self.intr_at[-1])
         self.valid = valid  # (C, F, N)
         self.obs = [image_points[c][valid[c]] for c in range(self.C)]
         rows, cols, self.offsets = [], [], [0]
         for c in range(self.C):
             f = np.nonzero(valid[c])[0]
             k = len(f)
-            blocks = [self.n_rig + 6 * f[:, None] + np.arange(6)]  # (K, 6) board columns
+            blocks = [self.n_head + 6 * f[:, None] + np.arange(6)]  # (K, 6) board columns
+            if sizes[c]:
+                blocks.insert(0, np.broadcast_to(self.intr_at[c] + np.arange(sizes[c]),
+                                                 (k, sizes[c])))
             if c > 0:
                 blocks.insert(0, np.broadcast_to(6 * (c - 1) + np.arange(6), (k, 6)))
             cb = np.concatenate(blocks, axis=1)  # (K, ncol)
@@ -150,27 +172,41 @@ class _RigProblem:
             cols.append(np.broadcast_to(cb[:, None, :], (k, 2, cb.shape[1])).ravel())
             self.offsets.append(self.offsets[-1] + 2 * k)
         self.rows, self.cols = np.concatenate(rows), np.concatenate(cols)
-        self.shape = (self.offsets[-1], self.n_rig + 6 * self.F)
+        self.shape = (self.offsets[-1], self.n_head + 6 * self.F)
+
+    def initial_intrinsics(self) -> np.ndarray:
+        return np.concatenate([p[m] for p, m in zip(self.params0, self.free)])
 
     def unpack(self, x):
+        """(rig poses (C, 6), per-camera model parameters (C, 13), board poses (F, 6))."""
         rig = np.vstack([np.zeros(6), x[: self.n_rig].reshape(-1, 6)])
-        return rig, x[self.n_rig:].reshape(-1, 6)
+        params = []
+        for c, (p, m) in enumerate(zip(self.params0, self.free)):
+            p = p.copy()
+            p[m] = x[self.intr_at[c]: self.intr_at[c + 1]]
+            params.append(p)
+        return rig, np.array(params), x[self.n_head:].reshape(-1, 6)
 
     def evaluate(self, x, jacobian: bool):
-        rig, boards = self.unpack(x)
+        rig, params, boards = self.unpack(x)
         Y = (np.einsum("fij,nj->fni", rodrigues_to_matrix(boards[:, :3]), self.obj)
              + boards[:, None, 3:])  # board points in camera 0's frame (F, N, 3)
         if jacobian:  # d Y / d (rvec, tvec) of cam0_from_board, (F, N, 3, 6)
             dY = np.concatenate([np.stack([rotate_jacobian(b[:3], self.obj) for b in boards]),
                                  np.broadcast_to(np.eye(3), Y.shape + (3,))], axis=-1)
         res, data = [], []
-        for c, cam in enumerate(self.cameras):
-            uv, J = project_with_jacobians(Y[self.valid[c]], cam.intrinsics, cam.dist,
+        for c in range(self.C):
+            uv, J = project_with_jacobians(Y[self.valid[c]], params[c, :5], params[c, 5:],
                                            rig[c, :3], rig[c, 3:], jacobians=jacobian)
             res.append((uv - self.obs[c]).ravel())
             if jacobian:
-                Jb = J["point"] @ dY[self.valid[c]]
-                data.append((np.concatenate([J["pose"], Jb], -1) if c > 0 else Jb).ravel())
+                blocks = [J["point"] @ dY[self.valid[c]]]
+                if self.free[c].any():
+                    blocks.insert(0, np.concatenate([J["intrinsics"], J["dist"]],
+                                                    -1)[..., self.free[c]])
+                if c > 0:
+                    blocks.insert(0, J["pose"])
+                data.append(np.concatenate(blocks, -1).ravel())
         r = np.concatenate(res)
         if not jacobian:
             return r
@@ -179,7 +215,8 @@ class _RigProblem:
 
     def rms(self, x) -> tuple[float, np.ndarray]:
         r = self.evaluate(x, False)
-        per = [np.sqrt(np.mean(r[a:b] ** 2) * 2) for a, b in zip(self.offsets, self.offsets[1:])]
+        per = [np.sqrt(np.mean(r[a:b] ** 2) * 2) if b > a else float("nan")
+               for a, b in zip(self.offsets, self.offsets[1:])]
         return float(np.sqrt(np.mean(r**2) * 2)), np.array(per)
 
 
@@ -191,6 +228,9 @@ def calibrate_rig(
     board_tvecs,
     found=None,
     tolerance: float = 1e-12,
+    refine_intrinsics: Sequence[Sequence[str] | None] | None = None,
+    loss: str = "linear",
+    loss_scale_px: float = 1.0,
 ) -> RigCalibration:
     """Calibrate the relative poses of a rig; see the module notes.
 
@@ -199,6 +239,9 @@ def calibrate_rig(
     cam_from_board, NaN where not found. found (C, F) bool, optional (default: finite pose).
     A camera sees a frame if found, its pose is finite and it detected at least
     MIN_POINTS_PER_VIEW points. ``tolerance`` is least_squares' ftol, xtol and gtol.
+    refine_intrinsics: per camera the names (of MODEL_PARAMETERS) to adjust with the rig, or
+    None to keep that camera's intrinsics; None for all: intrinsics fixed. ``loss`` and
+    ``loss_scale_px``: least_squares' robust loss and f_scale.
     """
     t0 = time.perf_counter()
     C = len(cameras)
@@ -223,41 +266,58 @@ def calibrate_rig(
     seen = (found & np.all(np.isfinite(rv), -1) & np.all(np.isfinite(tv), -1)
             & (detected.sum(-1) >= MIN_POINTS_PER_VIEW))
     names = [cam.name for cam in cameras]
+    free = [np.zeros(len(MODEL_PARAMETERS), bool) if not refine_intrinsics or not p else
+            np.isin(MODEL_PARAMETERS, list(p)) for p in (refine_intrinsics or [None] * C)]
+    if len(free) != C:
+        raise ValueError(f"refine_intrinsics: expected one entry per camera ({C}), got "
+                         f"{len(free)}")
+    for p in refine_intrinsics or []:
+        unknown = set(p or []) - set(MODEL_PARAMETERS)
+        if unknown:
+            raise ValueError(f"refine_intrinsics: unknown parameters {sorted(unknown)}; "
+                             f"expected some of {MODEL_PARAMETERS}")
 
     board_R = rodrigues_to_matrix(np.where(seen[..., None], rv, 0.0))
     R, t, init_log = initial_rig(board_R, np.where(seen[..., None], tv, 0.0), seen, names)
 
-    used = seen.sum(axis=0) >= 2
+    # A frame one camera saw constrains only that camera's intrinsics (and its own pose).
+    used = seen.sum(axis=0) >= (1 if any(m.any() for m in free) else 2)
     frames = np.flatnonzero(used)
     # Initial cam0_from_board: through the lowest-numbered camera that sees the frame.
     first = np.argmax(seen[:, frames], axis=0)
     R0c, t0c = invert(R[first], t[first])
     R0b = R0c @ board_R[first, frames]
     t0b = np.einsum("fij,fj->fi", R0c, tv[first, frames]) + t0c
-    x0 = np.concatenate([np.hstack([matrix_to_rodrigues(R[1:]), t[1:]]).ravel(),
-                         np.hstack([matrix_to_rodrigues(R0b), t0b]).ravel()])
-
     valid = detected[:, frames] & seen[:, frames, None]
-    problem = _RigProblem(cameras, obj, img[:, frames], valid)
+    problem = _RigProblem(cameras, obj, img[:, frames], valid, free)
+    x0 = np.concatenate([np.hstack([matrix_to_rodrigues(R[1:]), t[1:]]).ravel(),
+                         problem.initial_intrinsics(),
+                         np.hstack([matrix_to_rodrigues(R0b), t0b]).ravel()])
     rms0, _ = problem.rms(x0)
     sol = least_squares(lambda x: problem.evaluate(x, False), x0,
                         jac=lambda x: problem.evaluate(x, True), method="trf", x_scale="jac",
-                        ftol=tolerance, xtol=tolerance, gtol=tolerance,
+                        ftol=tolerance, xtol=tolerance, gtol=tolerance, loss=loss,
+                        f_scale=loss_scale_px,
                         # Tight inner LSMR solves: with its default 1e-6 a noisy 3-camera rig
                         # took 61 inexact steps instead of 5.
                         tr_options={"atol": 1e-10, "btol": 1e-10})
     rms, rms_per = problem.rms(sol.x)
-    rig, boards = problem.unpack(sol.x)
+    rig, params, boards = problem.unpack(sol.x)
     board_rvecs_out, board_tvecs_out = np.full((F, 3), np.nan), np.full((F, 3), np.nan)
     board_rvecs_out[frames], board_tvecs_out[frames] = boards[:, :3], boards[:, 3:]
     return RigCalibration(
-        cameras=[cam.with_params(rvec=rig[c, :3], tvec=rig[c, 3:])
+        cameras=[cam.with_params(**{n: float(v) for n, v in zip(INTRINSIC_NAMES, params[c, :5])},
+                                 dist=params[c, 5:], rvec=rig[c, :3], tvec=rig[c, 3:])
                  for c, cam in enumerate(cameras)],
         board_rvecs=board_rvecs_out, board_tvecs=board_tvecs_out, frames_used=used,
         rms_px=rms, rms_px_per_camera=rms_per, iterations=int(sol.njev),
         time_s=time.perf_counter() - t0,
         log={"initial_rms_px": rms0, "nfev": int(sol.nfev), "status": int(sol.status),
-             "message": sol.message, "n_observations": int(valid.sum()),
+             "message": sol.message, "n_observations": int(valid.sum()), "loss": loss,
+             "loss_scale_px": loss_scale_px,
+             "refined_intrinsics": {n: [p for p, f in zip(MODEL_PARAMETERS, m) if f]
+                                    for n, m in zip(names, free) if m.any()},
+             "covisibility": (seen[:, None, :] & seen[None, :, :]).sum(-1),
              "initialization": init_log})
 
 
@@ -276,13 +336,60 @@ def rig_errors(estimated: Sequence[Camera], truth: Sequence[Camera]) -> dict[str
     """Per camera (C,), the estimated cam_from_cam0 against the true one (both from cam_from_world).
 
     rotation_deg: angle of R_est R_true^T; translation_mm: |t_est - t_true|; baseline_mm: signed
-    |t_est| - |t_true|, the error of the distance between the camera's centre and camera 0's.
-    Camera 0 scores 0 by construction.
+    |t_est| - |t_true|, the error of the distance between the camera's centre and camera 0's;
+    centre_mm: the distance between the estimated and the true camera centre, both in the
+    reference camera's frame. Camera 0 scores 0 by construction.
     """
     if len(estimated) != len(truth):
         raise ValueError(f"rig_errors: {len(estimated)} estimated and {len(truth)} true cameras")
     Re, te = cam_from_cam0(estimated)
     Rt, tt = cam_from_cam0(truth)
+    centre_e = -np.einsum("cji,cj->ci", Re, te)
+    centre_t = -np.einsum("cji,cj->ci", Rt, tt)
     return {"rotation_deg": np.degrees(geodesic_distance(Rt, Re)),
             "translation_mm": np.linalg.norm(te - tt, axis=-1),
-            "baseline_mm": np.linalg.norm(te, axis=-1) - np.linalg.norm(tt, axis=-1)}
+            "baseline_mm": np.linalg.norm(te, axis=-1) - np.linalg.norm(tt, axis=-1),
+            "centre_mm": np.linalg.norm(centre_e - centre_t, axis=-1)}
+
+
+def similarity_transform(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """(s, R, t) minimizing sum |s R src_i + t - dst_i|^2 over points (K, 3), K >= 3 not on a
+    line (Umeyama, "Least-squares estimation of transformation parameters between two point
+    patterns", PAMI 1991, eq. 40-42)."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    a, b = src - mu_s, dst - mu_d
+    var = np.mean(np.sum(a * a, axis=1))
+    U, D, Vt = np.linalg.svd(b.T @ a / len(src))
+    if len(src) < 3 or D[1] <= 1e-9 * D[0]:
+        raise ValueError("similarity_transform: expected at least 3 points not on a line")
+    S = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ S @ Vt
+    s = float(np.trace(np.diag(D) @ S) / var)
+    return s, R, mu_d - s * R @ mu_s
+
+
+def aligned_rig_errors(estimated: Sequence[Camera], truth: Sequence[Camera]) -> dict:
+    """Per camera, the rig's errors after the similarity that best maps the estimated camera
+    centres onto the true ones (both in their reference camera's frame): what is left of a
+    geometry once its choice of reference camera and its scale are forgiven. rotation_deg,
+    centre_mm (C,), and the alignment's ``scale``. Needs 3 cameras whose centres are not on a
+    line (ValueError otherwise)."""
+    Re, te = cam_from_cam0(estimated)
+    Rt, tt = cam_from_cam0(truth)
+    centre_e = -np.einsum("cji,cj->ci", Re, te)
+    centre_t = -np.einsum("cji,cj->ci", Rt, tt)
+    s, R, t = similarity_transform(centre_e, centre_t)
+    # The aligned camera maps true-frame points by cam_from_ref_est o (ref_est_from_ref_true).
+    return {"rotation_deg": np.degrees(geodesic_distance(Rt, Re @ R.T)),
+            "centre_mm": np.linalg.norm(s * centre_e @ R.T + t - centre_t, axis=-1),
+            "scale": s}
+
+
+def planar_pose(camera: Camera, object_points: np.ndarray, image_points: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """cam_from_board (rvec, tvec) of a planar board (z = 0) seen by a calibrated camera: the
+    homography from the board to the undistorted normalized image, decomposed as Zhang's
+    section 3.1 does with K = I. Starts the rig's adjustment for the frames a camera's own
+    calibration did not use."""
+    H = fit_homography(object_points[:, :2], camera.unproject(image_points))
+    return extrinsics_from_homography(np.eye(3), H)

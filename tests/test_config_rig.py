@@ -53,13 +53,17 @@ def test_unreadable_file(tmp_path):
         load_rig(tmp_path / "bad.yaml")
 
 
-@pytest.mark.parametrize("path", CONFIGS, ids=[p.stem for p in CONFIGS])
-def test_shipped_configs_keep_the_board_in_view(path):
+SPRINGS = [p for p in CONFIGS if load_rig(p).trajectory.kind == "spring"]
+
+
+@pytest.mark.parametrize("path", SPRINGS, ids=[p.stem for p in SPRINGS])
+def test_shipped_spring_configs_keep_the_board_in_view(path):
     rig = Rig.from_config(load_rig(path))
     gt = rig.ground_truth()
     seen = gt.visible.all(axis=2)  # (C, F): whole board seen
-    # The trajectory is designed to keep the whole board in every camera's view.
-    assert seen.mean() >= 0.95, rig.frames_out_of_view(gt)
+    # The conical spring is designed to keep the whole board in every camera's view (a
+    # studio's session is not: tests/test_studio.py).
+    assert seen.mean() >= 0.95, rig.coverage(gt)
 
 
 def test_trajectory_is_a_conical_spring_facing_the_rig():

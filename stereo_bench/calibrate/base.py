@@ -91,6 +91,11 @@ class CalibrationResult:
 
 
 class Calibrator(Protocol):
+    """``model_parameters``: the parameters of the camera core's OpenCV model (camera.py's
+    INTRINSIC_NAMES + DIST_NAMES) that the method estimates, which a rig's bundle adjustment
+    may refine with it; None when the method's own model is not a subset of OpenCV's."""
+
     name: str
+    model_parameters: tuple[str, ...] | None
 
     def calibrate(self, obs: Observations) -> CalibrationResult: ...

@@ -93,6 +93,7 @@ class BouguetCalibrator:
         free = (["fx", "fy", "cx", "cy"] + (["skew"] if est_alpha else [])
                 + [n for n, e in zip(KC_NAMES, self.est_dist) if e])
         self.free = free_mask(self.model.param_names, free)
+        self.model_parameters = tuple(free)
 
     def _extrinsics(self, params, obs: Observations):
         """Every view's pose afresh: compute_extrinsic_init, then compute_extrinsic_refine."""

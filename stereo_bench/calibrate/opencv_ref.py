@@ -29,6 +29,7 @@ class OpenCVCalibrator:
         """``flags`` are OR-ed into calibrateCamera's (e.g. CALIB_FIX_K3)."""
         self.name = "opencv-rational" if rational else "opencv"
         self.rational = rational
+        self.model_parameters = _FREE[rational]
         self.flags = int(flags) | (cv2.CALIB_RATIONAL_MODEL if rational else 0)
 
     def calibrate(self, obs: Observations) -> CalibrationResult:

@@ -334,6 +334,10 @@ class TsaiCalibrator:
     """
 
     name = "tsai"
+    # Tsai's model (radial kappa1 on distorted coordinates, scale factor sx) is not the OpenCV
+    # model its estimate is converted to, so no OpenCV parameters stand for it in a rig's
+    # bundle adjustment: there its intrinsics stay as estimated.
+    model_parameters = None
 
     def __init__(self, sx: float | None = None, free_principal_point: bool = False,
                  max_iter: int = 100):

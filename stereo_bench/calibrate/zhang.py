@@ -101,6 +101,8 @@ class ZhangCalibrator:
     def __init__(self, zero_skew: bool = False, max_iter: int = 100):
         self.zero_skew = zero_skew
         self.max_iter = max_iter
+        self.model_parameters = ("fx", "fy", "cx", "cy", "k1", "k2") + (
+            () if zero_skew else ("skew",))
 
     def calibrate(self, obs: Observations) -> CalibrationResult:
         t0 = time.perf_counter()
@@ -113,8 +115,8 @@ class ZhangCalibrator:
                                 radial_from_linear(K, rvecs, tvecs, obs))
 
         model = OpenCVModel()
-        free = ["fx", "fy", "cx", "cy", "k1", "k2"] + ([] if self.zero_skew else ["skew"])
-        res = refine(model, model.params_of(initial), free_mask(model.param_names, free),
+        res = refine(model, model.params_of(initial),
+                     free_mask(model.param_names, self.model_parameters),
                      obs.object_points, obs.image_points, rvecs, tvecs, max_iter=self.max_iter)
         log = {"method": self.name, "zero_skew": self.zero_skew, "closed_form": initial.to_dict(),
                **res.log(), "time_s": time.perf_counter() - t0,

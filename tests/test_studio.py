@@ -1,0 +1,244 @@
+"""Motion-capture studios: rig layouts, the calibration session, and the multi-camera
+calibration (covisibility graph, then bundle adjustment) against exact ground truth."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stereo_bench.calibrate import get_calibrator
+from stereo_bench.calibrate.base import Observations
+from stereo_bench.camera import matrix_to_rodrigues
+from stereo_bench.config import ConfigError, load_rig, parse_rig
+from stereo_bench.rig import Rig, volume_centre
+from stereo_bench.stereo import (aligned_rig_errors, calibrate_rig, cam_from_cam0, planar_pose,
+                                 rig_errors, similarity_transform)
+
+STUDIOS = sorted((Path(__file__).parent.parent / "configs" / "studios").glob("*.yaml"))
+LENS = {"width": 640, "height": 480, "fx": 500.0, "fy": 500.0, "cx": 319.5, "cy": 239.5,
+        "dist": [-0.1, 0.05, 0.0, 0.0]}
+
+
+def studio_dict(**studio):
+    return {"name": "s", "pattern": {"kind": "charuco", "squares_x": 7, "squares_y": 5,
+                                     "square_mm": 80.0, "marker_mm": 60.0,
+                                     "dictionary": "DICT_4X4_50"},
+            "studio": {"layout": "ring", "count": 4, "radius_mm": 3000.0, "lenses": [LENS],
+                       **studio},
+            "trajectory": {"kind": "session", "frames": 60, "turns": 2, "closeups": 12}}
+
+
+def test_ring_layout_places_cameras_on_the_circle_looking_at_the_target():
+    cfg = parse_rig(studio_dict(count=6, height_mm=[1500.0, 2500.0], start_deg=30.0))
+    cams = cfg.cameras_true()
+    centres = np.stack([c.center for c in cams])
+    assert np.allclose(np.hypot(centres[:, 0], centres[:, 1]), 3000.0)
+    assert np.allclose(centres[:, 2], [1500, 2500] * 3)
+    angles = np.degrees(np.arctan2(centres[:, 1], centres[:, 0])) % 360
+    assert np.allclose(angles, (30 + 60 * np.arange(6)) % 360)
+    target = np.array([0.0, 0.0, 1000.0])
+    for c in cams:  # the optical axis passes through the target, the image is upright
+        v = (target - c.center) / np.linalg.norm(target - c.center)
+        assert np.allclose(c.R[2], v, atol=1e-12)
+        assert c.R[1] @ np.array([0.0, 0.0, 1.0]) < 0  # image y points down the world
+    assert np.allclose(volume_centre(cams), target, atol=1e-9)
+    assert [c.name for c in cams] == [f"cam{i}" for i in range(1, 7)]
+
+
+def test_half_ring_and_rectangle_layouts():
+    half = parse_rig(studio_dict(count=5, arc_deg=180.0)).cameras_true()
+    angles = [np.degrees(np.arctan2(c.center[1], c.center[0])) for c in half]
+    assert np.allclose(angles, [0, 45, 90, 135, 180])
+    rect = parse_rig(studio_dict(layout="rectangle", size_mm=[3600.0, 8400.0],
+                                 radius_mm=None)).cameras
+    centres = np.array([c.position_mm for c in rect])[:, :2]
+    assert sorted(map(tuple, centres.tolist())) == [(-1800, -4200), (-1800, 4200),
+                                                    (1800, -4200), (1800, 4200)]
+    # Consecutive cameras go round the rectangle: pairs on the long sides (x = -1800, +1800).
+    assert centres[0, 0] == centres[1, 0] and centres[2, 0] == centres[3, 0]
+
+
+def test_mixed_lenses_are_taken_in_turn_and_the_expansion_round_trips():
+    wide = {**LENS, "fx": 300.0, "fy": 300.0}
+    cfg = parse_rig(studio_dict(count=4, lenses=[LENS, wide], names=["a", "b", "c", "d"]))
+    assert [c.fx for c in cfg.cameras] == [500, 300, 500, 300]
+    assert [c.name for c in cfg.cameras] == ["a", "b", "c", "d"]
+    # The resolved configuration lists the cameras; read back, it is the same rig.
+    again = parse_rig(cfg.model_dump(mode="json"))
+    assert again == cfg and again.studio is None
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"radius_mm": None}, "radius_mm: required for a ring"),
+    ({"layout": "rectangle", "size_mm": [3000.0, 4000.0], "count": 5}, "expected an even count"),
+    ({"names": ["a"]}, "names: expected 4 names"),
+    ({"count": 1}, "studio.count"),
+    ({"lenses": []}, "studio.lenses"),
+    ({"lenses": [{**LENS, "cx": 5.0}]}, "cx: 5.0 lies outside the central 90 %"),
+])
+def test_bad_studios_are_refused_naming_the_field(change, message):
+    d = studio_dict()
+    d["studio"].update(change)
+    with pytest.raises(ConfigError, match=message):
+        parse_rig(d, "studio.yaml")
+
+
+def test_cameras_and_studio_together_are_refused():
+    d = studio_dict()
+    d["cameras"] = [{**LENS, "name": "x"}]
+    with pytest.raises(ConfigError, match="either a list of cameras or a studio"):
+        parse_rig(d, "studio.yaml")
+
+
+def test_spring_around_a_studio_is_refused_with_the_way_out():
+    d = studio_dict()
+    d["trajectory"] = {"kind": "spring", "frames": 10}
+    with pytest.raises(ValueError, match="trajectory.kind: session"):
+        Rig.from_config(parse_rig(d))
+    d["trajectory"] = {"kind": "spring", "closeups": 3}
+    with pytest.raises(ConfigError, match="closeups: only a session trajectory"):
+        parse_rig(d)
+
+
+@pytest.mark.parametrize("path", STUDIOS, ids=[p.stem for p in STUDIOS])
+def test_session_shows_each_camera_the_board_part_of_the_time(path):
+    cfg = load_rig(path)
+    rig = Rig.from_config(cfg)
+    tr = cfg.trajectory
+    C = len(rig.cameras)
+    assert len(rig.trajectory) == tr.frames + C * tr.closeups
+    assert np.array_equal(rig.closeup_of, np.repeat(np.arange(-1, C), [tr.frames] + [tr.closeups] * C))
+    gt = rig.ground_truth()
+    seen = gt.visible.sum(axis=2) >= 8  # (C, F)
+    walk = rig.closeup_of < 0
+    for c in range(C):
+        # Part of the time, not always: the board's front faces each camera in turn.
+        assert 0.2 * tr.frames <= seen[c, walk].sum() <= 0.8 * tr.frames
+        # Its own close-ups show it the whole board in nearly every frame.
+        own = rig.closeup_of == c
+        assert gt.visible[c, own].all(axis=1).mean() >= 0.9
+    # The walk joins every camera to every other through frames two cameras share.
+    shared = (seen[:, None, walk] & seen[None, :, walk]).sum(-1)
+    joined, frontier = {0}, [0]
+    while frontier:
+        i = frontier.pop()
+        for j in np.flatnonzero(shared[i] >= 5):
+            if j not in joined:
+                joined.add(int(j))
+                frontier.append(int(j))
+    assert joined == set(range(C))
+
+
+def exact_studio(closeups=12):
+    """A 4-camera ring, its exact board observations (C, F, N, 2; NaN where unseen) and
+    the board points."""
+    d = studio_dict()
+    d["trajectory"]["closeups"] = closeups
+    rig = Rig.from_config(parse_rig(d))
+    gt = rig.ground_truth()
+    return rig, np.where(gt.visible[..., None], gt.points, np.nan), rig.pattern.object_points()
+
+
+def per_camera(rig, img, obj, method, frames=None):
+    """Each camera calibrated alone by ``method`` on its views with 8+ points; its estimate and
+    per-frame cam_from_board (planar poses for frames its calibration did not use)."""
+    C, F = img.shape[:2]
+    cams, rv, tv = [], np.full((C, F, 3), np.nan), np.full((C, F, 3), np.nan)
+    for c, cam in enumerate(rig.cameras):
+        ok = np.isfinite(img[c]).all(-1)
+        views = np.flatnonzero((ok.sum(1) >= 8) & (frames[c] if frames is not None else True))
+        obs = Observations([obj[ok[f]] for f in views], [img[c, f][ok[f]] for f in views],
+                           cam.size, views, cam.name)
+        res = get_calibrator(method).calibrate(obs)
+        cams.append(res.camera)
+        rv[c, views], tv[c, views] = res.rvecs, res.tvecs
+        for f in np.flatnonzero(ok.sum(1) >= 8):
+            if f not in views:
+                rv[c, f], tv[c, f] = planar_pose(res.camera, obj[ok[f]], img[c, f][ok[f]])
+    return cams, rv, tv
+
+
+def pose_errors(estimated, truth):
+    e = rig_errors(estimated, truth)
+    return e["centre_mm"].max(), np.radians(e["rotation_deg"]).max()
+
+
+@pytest.mark.parametrize("method", ["zhang", "bouguet", "opencv"])
+def test_noise_free_studio_is_recovered_exactly(method):
+    """Graph then bundle adjustment, from each method's own intrinsics: every camera's pose to
+    1e-6 mm and 1e-8 rad. Zhang's and Bouguet's estimates are exact on exact data, so the rig
+    with their intrinsics fixed is too; cv2.calibrateCamera works in float32 image points
+    (1e-5 px here), so its intrinsics carry that rounding until the rig's adjustment refines
+    them with the parameters it estimates. The refinement runs with the plain loss: from that
+    float32 start, scipy's trust region under soft_l1 stops at 8e-6 mm (xtol on a step its
+    loss rescaling shrinks), good enough for any user but not for this test's digits."""
+    rig, img, obj = exact_studio()
+    cams, rv, tv = per_camera(rig, img, obj, method)
+    params = get_calibrator(method).model_parameters
+    fixed = calibrate_rig(cams, obj, img, rv, tv, loss="soft_l1")
+    refined = calibrate_rig(cams, obj, img, rv, tv, refine_intrinsics=[params] * len(cams))
+    for result in ([fixed] if method != "opencv" else []) + [refined]:
+        centre, rotation = pose_errors(result.cameras, rig.cameras)
+        assert centre < 1e-6 and rotation < 1e-8, (method, centre, rotation)
+        assert result.rms_px < 1e-6
+    for est, true in zip(refined.cameras, rig.cameras):
+        assert abs(est.fx - true.fx) < 1e-6 and abs(est.dist[0] - true.dist[0]) < 1e-9
+    assert refined.log["refined_intrinsics"]["cam1"] == list(
+        n for n in ("fx", "fy", "cx", "cy", "skew", "k1", "k2", "p1", "p2", "k3", "k4", "k5",
+                    "k6") if n in params)
+
+
+def test_intrinsics_from_closeups_only_still_join_the_rig_exactly():
+    """Intrinsics from each camera's close-ups alone; the session frames enter the rig through
+    planar poses computed with those intrinsics."""
+    rig, img, obj = exact_studio()
+    frames = np.stack([rig.closeup_of == c for c in range(len(rig.cameras))])
+    cams, rv, tv = per_camera(rig, img, obj, "zhang", frames)
+    result = calibrate_rig(cams, obj, img, rv, tv)
+    centre, rotation = pose_errors(result.cameras, rig.cameras)
+    assert centre < 1e-6 and rotation < 1e-8
+    # The covisibility the rig reports is the frames each pair saw together.
+    seen = np.isfinite(img).all(-1).sum(-1) >= 8
+    assert np.array_equal(result.log["covisibility"], (seen[:, None] & seen[None]).sum(-1))
+
+
+def test_a_camera_no_other_shares_a_frame_with_is_named():
+    rig, img, obj = exact_studio()
+    cams, rv, tv = per_camera(rig, img, obj, "zhang")
+    img = img.copy()
+    own = rig.closeup_of == 2
+    img[2, ~own] = np.nan  # cam3 keeps only its own close-ups, which no other camera sees
+    img[np.ix_([0, 1, 3], own)] = np.nan
+    with pytest.raises(ValueError, match=r"cameras \['cam3'\] share no frame"):
+        calibrate_rig(cams, obj, img, rv, tv)
+
+
+def test_robust_loss_resists_wrong_corners():
+    rig, img, obj = exact_studio()
+    cams, rv, tv = per_camera(rig, img, obj, "zhang")
+    rng = np.random.default_rng(1)
+    noisy = img + rng.normal(0, 0.3, img.shape)
+    bad = rng.random(img.shape[:3]) < 0.01  # 1 % of the corners 5-15 px off
+    noisy[bad] += rng.choice([-1, 1], (bad.sum(), 2)) * rng.uniform(5, 15, (bad.sum(), 2))
+    plain = calibrate_rig(cams, obj, noisy, rv, tv)
+    robust = calibrate_rig(cams, obj, noisy, rv, tv, loss="soft_l1", loss_scale_px=1.0)
+    assert pose_errors(robust.cameras, rig.cameras)[0] < 0.5 * pose_errors(
+        plain.cameras, rig.cameras)[0]
+
+
+def test_similarity_alignment_forgives_reference_and_scale_only():
+    rig, _, _ = exact_studio()
+    truth = rig.cameras
+    # The true rig scaled by 1 % about the reference camera: large centre errors, none aligned.
+    R, t = cam_from_cam0(truth)
+    scaled = [c.with_params(rvec=matrix_to_rodrigues(R[i]), tvec=1.01 * t[i])
+              for i, c in enumerate(truth)]
+    errors = rig_errors(scaled, truth)
+    aligned = aligned_rig_errors(scaled, truth)
+    assert errors["centre_mm"].max() > 10 and errors["rotation_deg"].max() < 1e-9
+    assert aligned["centre_mm"].max() < 1e-9 and aligned["rotation_deg"].max() < 1e-9
+    assert abs(aligned["scale"] - 1 / 1.01) < 1e-12
+    # Umeyama recovers a known similarity.
+    src = np.random.default_rng(2).normal(size=(6, 3))
+    s, Rq, tq = similarity_transform(src, 2.5 * src @ R[1].T + [1.0, 2.0, 3.0])
+    assert abs(s - 2.5) < 1e-12 and np.allclose(Rq, R[1]) and np.allclose(tq, [1, 2, 3])
