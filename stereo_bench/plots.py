@@ -4,6 +4,8 @@
   difference, RMSE_cal);
 * ``residuals.png``: the distribution of reprojection residuals per method (first trial);
 * ``trajectory.png``: the board's path and the cameras in 3D;
+* ``studio.png`` (session trajectories): the studio from above with the board's path, and
+  which camera detected the board in which frame;
 * ``projection_difference_<camera>.png``: the map over the image of how far each method's
   estimate projects the true camera's rays.
 """
@@ -13,6 +15,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import matplotlib
+import matplotlib.colors
+import matplotlib.patches
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -22,6 +26,7 @@ from .camera import Camera, project_points  # noqa: E402
 from .dataset import Dataset  # noqa: E402
 from .detect import CameraDetections  # noqa: E402
 from .metrics import projection_difference_map  # noqa: E402
+from .rig import world_up  # noqa: E402
 from .rundir import RunPaths, TrialPaths  # noqa: E402
 
 
@@ -91,33 +96,108 @@ def plot_residuals(trial: TrialPaths, ds: Dataset, methods: list[str], path: Pat
     return path
 
 
+def _world_axes(cameras: list[Camera]) -> tuple[np.ndarray, list[str]]:
+    """A plotting basis (3, 3) of rows (horizontal 1, horizontal 2, up) and their labels: up
+    is the cameras' (rig.world_up), so a pair (world y down) and a studio (z up) both stand
+    upright; a basis vector along a world axis is named after it."""
+    up = world_up(cameras)
+    first = np.eye(3)[np.argmin(np.abs(up))]  # the world axis most orthogonal to up
+    e1 = first - (first @ up) * up
+    e1 /= np.linalg.norm(e1)
+    basis = np.stack([e1, np.cross(up, e1), up])
+    labels = []
+    for v in basis:
+        k = int(np.argmax(np.abs(v)))
+        labels.append(("-" if v[k] < 0 else "") + "xyz"[k] if abs(v[k]) > 1 - 1e-9 else "")
+    return basis, [f"{n} (mm)" if n else "(mm)" for n in labels]
+
+
 def plot_trajectory(ds: Dataset, path: Path) -> Path:
     rig = ds.rig()
-    pts = rig.board_points_world()
+    basis, labels = _world_axes(ds.cameras)
+    pts = rig.board_points_world() @ basis.T
     fig = plt.figure(figsize=(6, 5))
     ax = fig.add_subplot(projection="3d")
     centre = pts.mean(1)
-    ax.plot(centre[:, 0], centre[:, 2], -centre[:, 1], "-", color="tab:blue", lw=1,
-            label="board centre")
+    ax.plot(*centre.T, "-", color="tab:blue", lw=1, label="board centre")
     corners = [0, -1]
-    for f in range(0, len(pts), max(1, len(pts) // 12)):
-        p = pts[f]
-        ax.plot(p[corners, 0], p[corners, 2], -p[corners, 1], color="gray", lw=0.6)
-    scale = 0.15 * np.ptp(centre[:, 2]) + 30
-    for cam in ds.cameras:
+    for i, f in enumerate(range(0, len(pts), max(1, len(pts) // 12))):
+        ax.plot(*pts[f][corners].T, color="gray", lw=0.6,
+                label="board diagonal (every few frames)" if i == 0 else None)
+    scale = 0.15 * np.ptp(np.linalg.norm(centre - centre.mean(0), axis=1)) + 30
+    for i, cam in enumerate(ds.cameras):
         c = cam.center
         w, h = cam.width - 1, cam.height - 1
         rays = cam.unproject_rays(np.array([[0, 0], [w, 0], [w, h], [0, h]], float))
-        corners_w = c + scale * (rays / rays[:, 2:]) @ cam.R
+        corners_w = (c + scale * (rays / rays[:, 2:]) @ cam.R) @ basis.T
+        cb = c @ basis.T
         for q in corners_w:
-            ax.plot([c[0], q[0]], [c[2], q[2]], [-c[1], -q[1]], color="tab:red", lw=0.8)
+            ax.plot(*np.stack([cb, q]).T, color="tab:red", lw=0.8)
         loop = np.vstack([corners_w, corners_w[:1]])
-        ax.plot(loop[:, 0], loop[:, 2], -loop[:, 1], color="tab:red", lw=0.8)
-        ax.text(c[0], c[2], -c[1], cam.name, fontsize=7)
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("z (mm)")
-    ax.set_zlabel("-y (mm)")
-    ax.set_title("board trajectory (conical spring) and cameras", fontsize=9)
+        ax.plot(*loop.T, color="tab:red", lw=0.8, label="camera (field of view)" if i == 0
+                else None)
+        ax.text(*cb, cam.name, fontsize=7)
+    ax.set_xlabel(labels[0])
+    ax.set_ylabel(labels[1])
+    ax.set_zlabel(f"up: {labels[2]}")
+    kind = "calibration session" if ds.config.trajectory.kind == "session" else "conical spring"
+    ax.set_title(f"board trajectory ({kind}) and cameras", fontsize=9)
+    ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_studio(trial: TrialPaths, ds: Dataset, path: Path) -> Path:
+    """A studio from above, the board's path through it, and which camera saw the board when.
+
+    Left: the cameras (with their viewing direction) and the board centre's path seen from
+    above, the walk coloured by frame and each camera's close-ups in grey. Right: per camera and
+    frame, whether the board was detected (dark), in view but not detected (light: e.g. seen
+    too obliquely or only partly) or not in view (white), with the close-ups of each camera
+    after the walk."""
+    rig = ds.rig()
+    basis, labels = _world_axes(ds.cameras)
+    centre = rig.board_points_world().mean(1) @ basis.T
+    walk = rig.closeup_of < 0
+    dets = [CameraDetections.load(trial.detection(c.name)) for c in ds.cameras]
+    in_view = ds.ground_truth.visible.sum(axis=2) >= 8
+    detected = np.stack([d.found for d in dets])
+    fig, (top, raster) = plt.subplots(1, 2, figsize=(12, 4.8),
+                                      gridspec_kw={"width_ratios": [1, 1.6]})
+    sc = top.scatter(centre[walk, 0], centre[walk, 1], c=np.flatnonzero(walk), s=8,
+                     cmap="viridis", label="board centre, walk")
+    top.plot(centre[walk, 0], centre[walk, 1], "-", color="tab:blue", lw=0.4, alpha=0.5)
+    if (~walk).any():
+        top.scatter(centre[~walk, 0], centre[~walk, 1], s=6, color="0.6",
+                    label="board centre, close-ups")
+    span = np.ptp(np.stack([c.center for c in ds.cameras]) @ basis[:2].T, axis=0).max()
+    for cam in ds.cameras:
+        c = cam.center @ basis.T
+        d = cam.R[2] @ basis.T
+        top.annotate("", xy=c[:2] + 0.12 * span * d[:2] / max(np.linalg.norm(d[:2]), 1e-9),
+                     xytext=c[:2], arrowprops={"arrowstyle": "->", "color": "tab:red"})
+        top.plot(*c[:2], "s", color="tab:red", ms=5)
+        top.text(c[0], c[1], f" {cam.name}", fontsize=8)
+    top.set_aspect("equal", adjustable="datalim")
+    top.set_xlabel(labels[0])
+    top.set_ylabel(labels[1])
+    top.set_title("seen from above (red: cameras and their optical axes)", fontsize=9)
+    top.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2)
+    fig.colorbar(sc, ax=top, shrink=0.7, label="frame").ax.tick_params(labelsize=7)
+    state = np.where(detected, 2, np.where(in_view, 1, 0))
+    cmap = matplotlib.colors.ListedColormap(["white", "#9ecae1", "#08519c"])
+    raster.imshow(state, aspect="auto", cmap=cmap, vmin=0, vmax=2, interpolation="nearest")
+    raster.set_yticks(range(len(ds.cameras)), [c.name for c in ds.cameras], fontsize=8)
+    raster.set_xlabel("frame")
+    for start in np.flatnonzero(np.diff(rig.closeup_of)) + 1:
+        raster.axvline(start - 0.5, color="0.3", lw=0.6)
+    handles = [matplotlib.patches.Patch(color=cmap(i), label=t) for i, t in
+               ((2, "board detected"), (1, "in view, not detected"))]
+    raster.legend(handles=handles, fontsize=7, loc="upper right", framealpha=0.9)
+    raster.set_title("which camera saw the board when (lines: walk | close-ups of each "
+                     "camera)", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -172,4 +252,6 @@ def plot_run(out: Path, trials: list[dict], agg: dict) -> list[Path]:
     return [plot_metrics(agg, folder / "metrics.png"),
             plot_residuals(trial, ds, methods, folder / "residuals.png"),
             plot_trajectory(ds, folder / "trajectory.png"),
+            *([plot_studio(trial, ds, folder / "studio.png")]
+              if ds.config.trajectory.kind == "session" else []),
             *plot_projection_maps(trial, ds, methods, folder)]

@@ -37,6 +37,7 @@ from typing import Sequence
 import numpy as np
 import scipy.sparse
 from scipy.optimize import least_squares
+from threadpoolctl import threadpool_limits
 
 from .calibrate.base import MIN_POINTS_PER_VIEW
 from .calibrate.homography import fit_homography
@@ -220,6 +221,62 @@ class _RigProblem:
         return float(np.sqrt(np.mean(r**2) * 2)), np.array(per)
 
 
+@dataclass(frozen=True, eq=False)
+class RigStart:
+    """Where a rig's bundle adjustment starts (``rig_start``).
+
+    R, t (C, 3, 3), (C, 3): cam_from_cam0 from ``initial_rig``; board_rvecs, board_tvecs (F, 3):
+    cam0_from_board through the lowest-numbered camera that sees each frame (NaN for frames no
+    camera sees); seen (C, F) bool; log: ``initial_rig``'s per-camera log.
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    board_rvecs: np.ndarray
+    board_tvecs: np.ndarray
+    seen: np.ndarray
+    log: list[dict]
+
+
+def rig_start(cameras: Sequence[Camera], image_points, board_rvecs, board_tvecs,
+              found=None) -> RigStart:
+    """The start of a rig calibration from each camera's own board poses (module notes, 1).
+
+    image_points (C, F, N, 2) px, NaN where a point was not detected; board_rvecs, board_tvecs
+    (C, F, 3) each camera's own cam_from_board, NaN where not found; found (C, F) bool, optional
+    (default: finite pose). A camera sees a frame if found, its pose is finite and it detected
+    at least MIN_POINTS_PER_VIEW points. Shared by ``calibrate_rig`` and the pycolmap reference
+    (colmap_ref.py), so that both solvers start from the same values.
+    """
+    C = len(cameras)
+    img = np.asarray(image_points, dtype=np.float64)
+    rv, tv = np.asarray(board_rvecs, dtype=np.float64), np.asarray(board_tvecs, dtype=np.float64)
+    if C < 2:
+        raise ValueError(f"rig calibration: expected at least 2 cameras, got {C}")
+    if img.ndim != 4 or img.shape[0] != C or img.shape[-1] != 2:
+        raise ValueError(f"image_points: expected shape (C={C}, F, N, 2), got {img.shape}")
+    F = img.shape[1]
+    for name, a in (("board_rvecs", rv), ("board_tvecs", tv)):
+        if a.shape != (C, F, 3):
+            raise ValueError(f"{name}: expected shape {(C, F, 3)}, got {a.shape}")
+    found = np.ones((C, F), bool) if found is None else np.asarray(found, dtype=bool)
+    if found.shape != (C, F):
+        raise ValueError(f"found: expected shape {(C, F)}, got {found.shape}")
+    detected = np.all(np.isfinite(img), axis=-1)  # (C, F, N)
+    seen = (found & np.all(np.isfinite(rv), -1) & np.all(np.isfinite(tv), -1)
+            & (detected.sum(-1) >= MIN_POINTS_PER_VIEW))
+    board_R = rodrigues_to_matrix(np.where(seen[..., None], rv, 0.0))
+    R, t, log = initial_rig(board_R, np.where(seen[..., None], tv, 0.0), seen,
+                            [cam.name for cam in cameras])
+    frames = np.flatnonzero(seen.any(axis=0))
+    first = np.argmax(seen[:, frames], axis=0)
+    R0c, t0c = invert(R[first], t[first])
+    rv0, tv0 = np.full((F, 3), np.nan), np.full((F, 3), np.nan)
+    rv0[frames] = matrix_to_rodrigues(R0c @ board_R[first, frames])
+    tv0[frames] = np.einsum("fij,fj->fi", R0c, tv[first, frames]) + t0c
+    return RigStart(R, t, rv0, tv0, seen, log)
+
+
 def calibrate_rig(
     cameras: Sequence[Camera],
     object_points,
@@ -246,26 +303,14 @@ def calibrate_rig(
     t0 = time.perf_counter()
     C = len(cameras)
     obj = np.asarray(object_points, dtype=np.float64)
-    img = np.asarray(image_points, dtype=np.float64)
-    rv, tv = np.asarray(board_rvecs, dtype=np.float64), np.asarray(board_tvecs, dtype=np.float64)
-    if C < 2:
-        raise ValueError(f"rig calibration: expected at least 2 cameras, got {C}")
     if obj.ndim != 2 or obj.shape[1] != 3:
         raise ValueError(f"object_points: expected shape (N, 3), got {obj.shape}")
-    F, N = img.shape[1:3] if img.ndim == 4 else (None, None)
-    if img.shape != (C, F, N, 2) or N != len(obj):
-        raise ValueError(f"image_points: expected shape (C={C}, F, N={len(obj)}, 2), got "
-                         f"{img.shape}")
-    for name, a in (("board_rvecs", rv), ("board_tvecs", tv)):
-        if a.shape != (C, F, 3):
-            raise ValueError(f"{name}: expected shape {(C, F, 3)}, got {a.shape}")
-    found = np.ones((C, F), bool) if found is None else np.asarray(found, dtype=bool)
-    if found.shape != (C, F):
-        raise ValueError(f"found: expected shape {(C, F)}, got {found.shape}")
-    detected = np.all(np.isfinite(img), axis=-1)  # (C, F, N)
-    seen = (found & np.all(np.isfinite(rv), -1) & np.all(np.isfinite(tv), -1)
-            & (detected.sum(-1) >= MIN_POINTS_PER_VIEW))
-    names = [cam.name for cam in cameras]
+    start = rig_start(cameras, image_points, board_rvecs, board_tvecs, found)
+    img = np.asarray(image_points, dtype=np.float64)
+    if img.shape[2] != len(obj):
+        raise ValueError(f"image_points: expected N={len(obj)} points per frame (object_points),"
+                         f" got {img.shape[2]}")
+    seen, names = start.seen, [cam.name for cam in cameras]
     free = [np.zeros(len(MODEL_PARAMETERS), bool) if not refine_intrinsics or not p else
             np.isin(MODEL_PARAMETERS, list(p)) for p in (refine_intrinsics or [None] * C)]
     if len(free) != C:
@@ -277,30 +322,29 @@ def calibrate_rig(
             raise ValueError(f"refine_intrinsics: unknown parameters {sorted(unknown)}; "
                              f"expected some of {MODEL_PARAMETERS}")
 
-    board_R = rodrigues_to_matrix(np.where(seen[..., None], rv, 0.0))
-    R, t, init_log = initial_rig(board_R, np.where(seen[..., None], tv, 0.0), seen, names)
-
     # A frame one camera saw constrains only that camera's intrinsics (and its own pose).
     used = seen.sum(axis=0) >= (1 if any(m.any() for m in free) else 2)
     frames = np.flatnonzero(used)
-    # Initial cam0_from_board: through the lowest-numbered camera that sees the frame.
-    first = np.argmax(seen[:, frames], axis=0)
-    R0c, t0c = invert(R[first], t[first])
-    R0b = R0c @ board_R[first, frames]
-    t0b = np.einsum("fij,fj->fi", R0c, tv[first, frames]) + t0c
+    R, t = start.R, start.t
+    R0b, t0b = start.board_rvecs[frames], start.board_tvecs[frames]
+    detected = np.all(np.isfinite(img), axis=-1)  # (C, F, N)
+    F = img.shape[1]
     valid = detected[:, frames] & seen[:, frames, None]
     problem = _RigProblem(cameras, obj, img[:, frames], valid, free)
     x0 = np.concatenate([np.hstack([matrix_to_rodrigues(R[1:]), t[1:]]).ravel(),
                          problem.initial_intrinsics(),
-                         np.hstack([matrix_to_rodrigues(R0b), t0b]).ravel()])
+                         np.hstack([R0b, t0b]).ravel()])
     rms0, _ = problem.rms(x0)
-    sol = least_squares(lambda x: problem.evaluate(x, False), x0,
-                        jac=lambda x: problem.evaluate(x, True), method="trf", x_scale="jac",
-                        ftol=tolerance, xtol=tolerance, gtol=tolerance, loss=loss,
-                        f_scale=loss_scale_px,
-                        # Tight inner LSMR solves: with its default 1e-6 a noisy 3-camera rig
-                        # took 61 inexact steps instead of 5.
-                        tr_options={"atol": 1e-10, "btol": 1e-10})
+    # One BLAS thread: LSMR's many small products stall when threaded (2.5x slower measured
+    # on an 8-camera studio with 2 cores).
+    with threadpool_limits(1, user_api="blas"):
+        sol = least_squares(lambda x: problem.evaluate(x, False), x0,
+                            jac=lambda x: problem.evaluate(x, True), method="trf",
+                            x_scale="jac", ftol=tolerance, xtol=tolerance, gtol=tolerance,
+                            loss=loss, f_scale=loss_scale_px,
+                            # Tight inner LSMR solves: with its default 1e-6 a noisy 3-camera
+                            # rig took 61 inexact steps instead of 5.
+                            tr_options={"atol": 1e-10, "btol": 1e-10})
     rms, rms_per = problem.rms(sol.x)
     rig, params, boards = problem.unpack(sol.x)
     board_rvecs_out, board_tvecs_out = np.full((F, 3), np.nan), np.full((F, 3), np.nan)
@@ -318,7 +362,7 @@ def calibrate_rig(
              "refined_intrinsics": {n: [p for p, f in zip(MODEL_PARAMETERS, m) if f]
                                     for n, m in zip(names, free) if m.any()},
              "covisibility": (seen[:, None, :] & seen[None, :, :]).sum(-1),
-             "initialization": init_log})
+             "initialization": start.log})
 
 
 # ----------------------------------------------------------------------------------------------
