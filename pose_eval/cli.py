@@ -1,11 +1,13 @@
 """`pose-eval`: what a calibration method costs in 3D human pose (MPJPE), against exact truth.
 
-A body moves in front of the rig (pose_eval.scene); its joints are detected through the TRUE
-cameras (pose_eval.observe), triangulated through each method's ESTIMATED cameras
-(pose_eval.reconstruct), optionally fitted by SMPL (pose_eval.fit), and compared with the exact
-joints (pose_eval.metrics). The ``gt`` column triangulates the same detections through the true
-cameras: the error the keypoints alone leave. Every trial draws new keypoint noise; with a run of
-several trial seeds, trial i also uses the calibrations of run trial i mod (number of run trials).
+A body moves in front of the rig, or at the centre of a studio that surrounds it
+(pose_eval.scene); its joints are detected through the TRUE cameras (pose_eval.observe),
+triangulated through each method's ESTIMATED cameras (pose_eval.reconstruct), optionally fitted
+by SMPL (pose_eval.fit), and compared with the exact joints (pose_eval.metrics). The ``gt``
+column triangulates the same detections through the true cameras: the error the keypoints alone
+leave, and each method's cost is its MPJPE minus gt's on those keypoints (:func:`evaluate_trial`).
+Every trial draws new keypoint noise; with a run of several trial seeds, trial i also uses the
+calibrations of run trial i mod (number of run trials).
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import argparse
 import json
 import math
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -25,13 +28,14 @@ from stereo_bench.cli import say
 from stereo_bench.pipeline import Trial, load_run
 from stereo_bench.rundir import RunPaths, is_safe_name, locked, write_json, write_text
 
-from .body import load_body_model
+from .body import NUM_JOINTS, load_body_model
 from .fit import fit_smpl
-from .metrics import pose_metrics
-from .motion import MOTIONS
+from .metrics import excess_mpjpe, pose_metrics
+from .motion import JOINT_NAMES, MOTIONS
 from .observe import DetectorModel, observe, read_openpose, scene_occlusion
 from .reconstruct import triangulate_joints
-from .report import STAGES, aggregate, headline_stage, markdown, plot_mpjpe, plot_skeleton
+from .report import (COST, FLOOR, STAGES, aggregate, headline_stage, markdown, plot_mpjpe,
+                     plot_skeleton)
 from .scene import in_true_world, make_scene, rig_axes, run_description
 
 console = Console(stderr=True)
@@ -83,7 +87,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="noise trials (default: the run's trial count, or 1)")
     p.add_argument("--seed", type=int, default=0, help="base seed of the keypoint noise")
     p.add_argument("--distance-mm", type=float,
-                   help="body distance from the rig (default: the least that keeps it in view)")
+                   help="body distance from a rig whose cameras look the same way (default: the "
+                        "least that keeps it in view); a studio that surrounds the body places "
+                        "it at the point the cameras look at")
     p.add_argument("--model-path", help="an SMPL model file or folder (default: the shipped "
                                         "open stand-in body)")
     p.add_argument("--out", help="output directory (default: out/<rig name>/pose_eval)")
@@ -142,13 +148,20 @@ def check_options(args) -> None:
 
 
 def _warnings(results: dict) -> list[str]:
-    """What the user must know to read the numbers: too few detections, no method to compare."""
+    """What the user must know to read the numbers: too few detections, joints too few cameras
+    saw, no method to compare."""
     out = []
     counts = results["detections"]
     if counts.get("views") and counts["detected"] < MIN_DETECTED * counts["views"]:
         out.append(f"only {counts['detected']} of {counts['views']} joint views were detected "
                    f"({counts['detected'] / counts['views']:.0%}); MPJPE rests on few "
                    f"triangulated joints")
+    under = results["under_two_views"]
+    if under:
+        worst = sorted(under.items(), key=lambda kv: -kv[1])[:5]
+        out.append(f"{sum(under.values())} joints (frames x joints, all trials) were detected by "
+                   f"fewer than two cameras and are not triangulated (counted as missing), most "
+                   f"often " + ", ".join(f"{j} ({n})" for j, n in worst))
     if results["settings"]["calib"] == "all" and list(results["methods"]) == ["gt"]:
         out.append(f"{results['settings']['source']}: no calibrated rig in this run (a mono rig, "
                    f"or written by `stereo-bench calibrate`); only the true cameras (gt) are "
@@ -156,31 +169,71 @@ def _warnings(results: dict) -> list[str]:
     return out
 
 
-def _evaluate_method(cameras, keypoints, scene, args, model) -> tuple[dict, np.ndarray]:
-    """One method in one trial -> (its entry of pose metrics per stage, the final joints)."""
-    joints, dropped = triangulate_joints(cameras, keypoints, args.robust)
+def _evaluate_method(cameras, keypoints, scene, robust, fit, model) -> tuple[dict, dict]:
+    """One method in one trial -> (its entry of pose metrics per stage, {stage: joints
+    (T, 24, 3)})."""
+    joints, dropped = triangulate_joints(cameras, keypoints, robust)
     entry = {"triangulated": pose_metrics(joints, scene.joints), "dropped_detections": dropped}
-    if args.fit_smpl:
+    stages = {"triangulated": joints}
+    if fit:
         # A joint counts as much as its keypoints were trusted (occluded views: 0.3).
-        fit = fit_smpl(joints, weights=keypoints.confidence.mean(axis=0), model=model)
-        entry["fitted"] = pose_metrics(fit.joints, scene.joints)
-        entry["fit"] = {"rms_mm": fit.rms_mm, "iterations": fit.iterations}
-        joints = fit.joints
-    return entry, joints
+        fitted = fit_smpl(joints, weights=keypoints.confidence.mean(axis=0), model=model)
+        entry["fitted"] = pose_metrics(fitted.joints, scene.joints)
+        entry["fit"] = {"rms_mm": fitted.rms_mm, "iterations": fitted.iterations}
+        stages["fitted"] = fitted.joints
+    return entry, stages
 
 
-def _add_costs(entries: dict) -> None:
-    """The cost of each calibration: its MPJPE minus gt's on the same keypoints, per stage."""
+def evaluate_trial(truth, rigs: dict, keypoints, scene, robust: bool = False,
+                   fit: bool = False, model=None, label: str = "") -> tuple[dict, dict]:
+    """gt and every method of one trial, on the same keypoints.
+
+    rigs: {method: its cameras in the true world (pose_eval.scene.in_true_world), or the message
+    saying why it has none}; gt (``truth``) comes first. A method whose cameras cannot be used
+    (ValueError) is recorded as failed, its message prefixed by ``label``, and the others go on.
+    Returns ({method: entry}, {method: {stage: joints (T, 24, 3)}}); each stage of an entry
+    carries its paired cost against gt's (report.COST, pose_eval.metrics.excess_mpjpe) and gt's
+    MPJPE of this trial (report.FLOOR), so that summaries over trials stay paired.
+    """
+    entries, joints = {}, {}
+    for m, cameras in {"gt": truth, **rigs}.items():
+        if isinstance(cameras, str):
+            entries[m] = {"error": cameras}
+            continue
+        try:
+            entries[m], joints[m] = _evaluate_method(cameras, keypoints, scene, robust, fit,
+                                                     model)
+        except ValueError as e:  # one method's degenerate estimate must not stop the others
+            entries[m] = {"error": f"{label}: {e}" if label else str(e)}
     for stage, _ in STAGES:
-        base = entries["gt"].get(stage)
-        for e in entries.values():
-            if base is not None and stage in e:
-                e[stage]["excess_mpjpe_mm"] = e[stage]["mpjpe_mm"] - base["mpjpe_mm"]
+        if stage in joints.get("gt", {}):
+            for m, by_stage in joints.items():
+                entries[m][stage][COST] = excess_mpjpe(by_stage[stage], joints["gt"][stage],
+                                                       scene.joints)
+                entries[m][stage][FLOOR] = entries["gt"][stage]["mpjpe_mm"]
+    return entries, joints
+
+
+def _run_rigs(methods: list[str], run_trial: Trial) -> dict:
+    """{method: cameras in the true world, or why there are none} of one run trial, gt aside."""
+    rigs = {}
+    for m in methods:
+        if m == "gt":
+            continue
+        estimate = run_trial.rigs[m]
+        if isinstance(estimate, str):
+            rigs[m] = f"calibration failed in run trial seed {run_trial.seed}: {estimate}"
+            continue
+        try:
+            rigs[m] = in_true_world(estimate, run_trial.truth)
+        except ValueError as e:
+            rigs[m] = f"run trial seed {run_trial.seed}: {e}"
+    return rigs
 
 
 def _display(truth, *joints):
     """Joints (24, 3) in the rig's (right, depth, up) axes, for the skeleton plot."""
-    centre, axis, up = rig_axes(truth)
+    centre, axis, up, _ = rig_axes(truth)
     basis = np.stack([np.cross(axis, up), axis, up])
     return tuple((j - centre) @ basis.T for j in joints)
 
@@ -202,17 +255,27 @@ def evaluate(args) -> tuple[dict, dict]:
                              occlusion=not args.no_occlusion)
     n_trials = args.trials or len(run_trials)
     model = load_body_model(args.model_path)
+    shown = "fitted" if args.fit_smpl else "triangulated"  # the stage shown and plotted
     scenes = {}  # the true cameras of every run trial are normally the same: one scene
     per_method = {m: [] for m in methods}
     raw, examples = [], {}
     detections: dict[str, int] = {}
+    under_two_views = np.zeros(NUM_JOINTS, dtype=np.int64)  # frames per joint, all trials
+    placement: list[str] = []  # warnings of placing the body
     for i in range(n_trials):
         run_trial = run_trials[i % len(run_trials)]
         truth = run_trial.truth
         key = json.dumps([c.to_dict() for c in truth])
         if key not in scenes:
-            scene = make_scene(truth, args.motion, args.frames, model=model,
-                               distance_mm=args.distance_mm)
+            # A body out of some camera's view is said in the results, not only on stderr.
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                try:
+                    scene = make_scene(truth, args.motion, args.frames, model=model,
+                                       distance_mm=args.distance_mm)
+                except ValueError as e:  # a rig with no place for a body: name its file
+                    raise ValueError(f"{args.run or args.rig}: {e}") from None
+            placement += [str(w.message) for w in caught if str(w.message) not in placement]
             occluded = scene_occlusion(truth, scene) if detector.occlusion else None
             scenes[key] = scene, occluded
         scene, occluded = scenes[key]
@@ -223,35 +286,25 @@ def evaluate(args) -> tuple[dict, dict]:
                                 occluded)
         for k, v in keypoints.counts().items():
             detections[k] = detections.get(k, 0) + v
-        entries = {}
-        for m in methods:
-            rig_m = truth if m == "gt" else run_trial.rigs[m]
-            if isinstance(rig_m, str):
-                entries[m] = {"error": f"calibration failed in run trial seed {run_trial.seed}: "
-                                       f"{rig_m}"}
-                continue
-            try:
-                cameras = truth if m == "gt" else in_true_world(rig_m, truth)
-                entries[m], joints = _evaluate_method(cameras, keypoints, scene, args, model)
-            except ValueError as e:  # one method's degenerate estimate must not stop the others
-                entries[m] = {"error": f"run trial seed {run_trial.seed}: {e}"}
-                continue
-            if m not in examples:
-                examples[m] = _display(truth, scene.joints[args.frames // 2],
-                                       joints[args.frames // 2])
-        _add_costs(entries)
+        under_two_views += keypoints.under_two_views().sum(axis=0)
+        entries, joints = evaluate_trial(truth, _run_rigs(methods, run_trial), keypoints, scene,
+                                         args.robust, args.fit_smpl, model,
+                                         label=f"run trial seed {run_trial.seed}")
         for m in methods:
             per_method[m].append(entries[m])
+            if m in joints and m not in examples:
+                examples[m] = _display(truth, scene.joints[args.frames // 2],
+                                       joints[m][shown][args.frames // 2])
         raw.append({"trial": i, "run_seed": run_trial.seed, "noise_seed": [args.seed, i],
                     "methods": entries})
-        shown = "fitted" if args.fit_smpl else "triangulated"
         console.print(f"trial {i + 1}/{n_trials}, MPJPE ({dict(STAGES)[shown]}): " + ", ".join(
             f"{m} {e[shown]['mpjpe_mm']:.3f} mm" if "error" not in e else f"{m} failed"
             for m, e in entries.items()))
     first_scene = next(iter(scenes.values()))[0]
     settings = {
         "calib": args.calib, "motion": args.motion, "frames": args.frames, "trials": n_trials,
-        "distance_mm": first_scene.distance_mm, "robust": args.robust, "fit_smpl": args.fit_smpl,
+        "distance_mm": first_scene.distance_mm, "surrounded": first_scene.surrounded,
+        "robust": args.robust, "fit_smpl": args.fit_smpl,
         "model_path": args.model_path, "source": args.run or args.rig, "seed": args.seed,
         "keypoints": (f"OpenPose files from {args.keypoints}" if args.keypoints else
                       f"synthetic, noise {detector.noise_px} px, outliers "
@@ -259,8 +312,9 @@ def evaluate(args) -> tuple[dict, dict]:
                       f"{'on' if detector.occlusion else 'off'}"),
     }
     results = {"rig": rig, "environment": env, "settings": settings, "detections": detections,
+               "under_two_views": {j: int(n) for j, n in zip(JOINT_NAMES, under_two_views) if n},
                "methods": {m: aggregate(per_method[m]) for m in methods}, "trials": raw}
-    results["warnings"] = _warnings(results)
+    results["warnings"] = placement + _warnings(results)
     return results, examples
 
 

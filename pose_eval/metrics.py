@@ -15,6 +15,11 @@ other. A joint that could not be reconstructed (NaN) is excluded and counted; in
 formula a frame's sum then runs over its valid joints and is scaled by J / J_valid (the missing
 joints are given the frame's mean squared error), so that missing joints do not lower it.
 
+The cost of a calibration (:func:`excess_mpjpe`) is paired: the same keypoints triangulated
+through the estimated and through the true cameras, compared joint by joint on the joints both
+reconstructed, so the keypoint noise common to both cancels and a joint one of them lost does
+not move the other's mean. Without missing joints it is MPJPE(estimate) - MPJPE(reference).
+
 PA-MPJPE: the standard MPJPE after aligning each estimated frame to the truth by the similarity
 transform (scale, rotation, translation) that minimizes the squared error (Umeyama, "Least-
 squares estimation of transformation parameters between two point patterns", TPAMI 1991). It
@@ -42,6 +47,14 @@ def mpjpe(estimate, truth) -> float:
     """Mean over frames and joints of the joint error (mm), missing joints excluded."""
     e = joint_errors(estimate, truth)
     return float(e[np.isfinite(e)].mean()) if np.isfinite(e).any() else float("nan")
+
+
+def excess_mpjpe(estimate, reference, truth) -> float:
+    """The paired cost (mm): mean over the joints finite in both of |estimate - truth| minus
+    |reference - truth|; NaN when no joint is. Exactly 0 when estimate equals reference."""
+    e, r = joint_errors(estimate, truth), joint_errors(reference, truth)
+    both = np.isfinite(e) & np.isfinite(r)
+    return float((e[both] - r[both]).mean()) if both.any() else float("nan")
 
 
 def paper_mpjpe(estimate, truth) -> float:

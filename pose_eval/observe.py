@@ -69,13 +69,19 @@ class Keypoints:
     occluded: np.ndarray | None = None
     outlier: np.ndarray | None = None
 
+    def under_two_views(self) -> np.ndarray:
+        """(T, 24) bool: the joint is detected by fewer than two cameras, too few to triangulate."""
+        return np.count_nonzero(self.confidence > 0, axis=0) < 2
+
     def counts(self) -> dict:
-        """How many joint views there are, were detected, occluded, outliers."""
+        """How many joint views there are, were detected, occluded, outliers; and how many joints
+        (frame x joint) were detected by fewer than two cameras (``under_two_views``)."""
         n = {"views": int(self.confidence.size), "detected": int(np.count_nonzero(self.confidence))}
         for name in ("occluded", "outlier"):
             flags = getattr(self, name)
             if flags is not None:
                 n[name] = int(np.count_nonzero(flags & (self.confidence > 0)))
+        n["under_two_views"] = int(np.count_nonzero(self.under_two_views()))
         return n
 
 

@@ -2,7 +2,9 @@
 
 Table 5 has one row per rig and environment and one column per calibration method; here every
 table also carries the ``gt`` column, the same keypoints triangulated through the TRUE cameras:
-the floor that keypoint noise alone leaves, against which a method's cost is read.
+the floor that keypoint noise alone leaves. Table 5 redone leads the report: per method, its
+MPJPE beside the floor and its cost (MPJPE minus gt's on the same keypoints of the same trial,
+pose_eval.metrics.excess_mpjpe) with the cost's spread over trials: mean, std, min and max.
 """
 
 from __future__ import annotations
@@ -19,18 +21,28 @@ from stereo_bench.report import summarize  # noqa: E402
 
 from .motion import JOINT_NAMES, PARENTS  # noqa: E402
 
+COST, FLOOR = "excess_mpjpe_mm", "gt_mpjpe_mm"  # paired with gt in each trial (cli.evaluate_trial)
 MEASURES = [("mpjpe_mm", "MPJPE (standard) mm"),
-            ("excess_mpjpe_mm", "Cost of the calibration: MPJPE minus gt's, same keypoints, mm"),
+            (COST, "Cost of the calibration: MPJPE minus gt's, same keypoints, mm"),
+            (FLOOR, "gt's MPJPE in the trials the method succeeded in, mm"),
             ("paper_mpjpe_mm", "MPJPE (paper's formula) mm"),
             ("pa_mpjpe_mm", "PA-MPJPE mm")]
 STAGES = [("triangulated", "triangulated"), ("fitted", "SMPL fit")]
+
+
+def spread(values: list[float]) -> dict:
+    """summarize's mean, std and n over the finite values, with their min and max (NaN when
+    there are none): how far apart trials fall, which a std over 2-3 trials hardly tells."""
+    finite = [v for v in values if math.isfinite(v)]
+    return {**summarize(finite), "min": min(finite, default=math.nan),
+            "max": max(finite, default=math.nan)}
 
 
 def aggregate(trials: list[dict]) -> dict:
     """Summaries of one method over its trials (each {"triangulated": pose_metrics, ["fitted":
     pose_metrics]} or {"error": message}).
 
-    Returns {stage: {measure: summary, "per_joint_mm": {joint: summary}, "missing_joints":
+    Returns {stage: {measure: spread, "per_joint_mm": {joint: summary}, "missing_joints":
     total}, "failures": [messages], "trials": n}.
     """
     done = [t for t in trials if "error" not in t]
@@ -39,7 +51,7 @@ def aggregate(trials: list[dict]) -> dict:
         entries = [t[stage] for t in done if stage in t]
         if not entries and stage != "triangulated":
             continue
-        agg[stage] = {key: summarize([e.get(key, math.nan) for e in entries])
+        agg[stage] = {key: spread([e.get(key, math.nan) for e in entries])
                       for key, _ in MEASURES}
         agg[stage]["per_joint_mm"] = {
             j: summarize([e["per_joint_mm"][j] for e in entries]) for j in JOINT_NAMES}
@@ -58,16 +70,46 @@ def headline_stage(results: dict) -> str:
     return "fitted" if results["settings"]["fit_smpl"] else "triangulated"
 
 
+def cost_table(results: dict, stage: str) -> list[str]:
+    """Table 5 redone, one row per method: its MPJPE and gt's (the floor) over the trials where
+    it succeeded, and its cost's mean, std, min and max over them (one trial has no spread, and
+    says so)."""
+    methods = results["methods"]
+    lines = ["| Method | MPJPE mm | gt floor mm | Cost mm | Cost std | Cost min | Cost max "
+             "| Trials |", "|---|---|---|---|---|---|---|---|"]
+    for name, m in methods.items():
+        if stage not in m:
+            lines.append(f"| {name} | failed | | | | | | 0 of {m['trials']} |")
+            continue
+        mpjpe, floor, cost = (m[stage][k] for k in ("mpjpe_mm", FLOOR, COST))
+        cells = [fmt(mpjpe), fmt(floor)]
+        if name == "gt":
+            cells += ["0 (the floor)", "", "", ""]
+        elif cost["n"] == 0:
+            cells += ["failed", "", "", ""]
+        elif cost["n"] == 1:
+            cells += [f"{cost['mean']:+.3f}", "no spread: 1 trial", "", ""]
+        else:
+            cells += [f"{cost[k]:+.3f}" if k != "std" else f"{cost[k]:.3f}"
+                      for k in ("mean", "std", "min", "max")]
+        lines.append(f"| {name} | " + " | ".join(cells) + f" | {cost['n']} of {m['trials']} |")
+    return lines
+
+
 def markdown(results: dict) -> str:
-    """The report: settings, Table-5 tables per measure, per-joint errors, counts, failures."""
+    """The report: settings, Table 5 redone (costs), Table-5 tables per measure, per-joint
+    errors, counts, failures."""
     s, methods = results["settings"], results["methods"]
     names = list(methods)
     rig, env = results["rig"], results["environment"]
     stages = [(k, label) for k, label in STAGES if any(k in m for m in methods.values())]
+    where = (f"body at the point the cameras look at, {s['distance_mm']:.0f} mm from them on "
+             f"average (they surround it), facing camera 0" if s.get("surrounded") else
+             f"body at {s['distance_mm']:.0f} mm from the rig")
     lines = [
         f"# pose-eval: {rig} ({env})", "",
-        f"Motion `{s['motion']}`, {s['frames']} frames, body at {s['distance_mm']:.0f} mm from the "
-        f"rig; keypoints: {s['keypoints']}; triangulation: "
+        f"Motion `{s['motion']}`, {s['frames']} frames, {where}; keypoints: {s['keypoints']}; "
+        f"triangulation: "
         f"{'robust (outlier views rejected)' if s['robust'] else 'weighted DLT + ML refinement'}"
         f"{'; then an SMPL fit' if s['fit_smpl'] else ''}. "
         f"Mean ± std over {s['trials']} trial(s).",
@@ -76,11 +118,16 @@ def markdown(results: dict) -> str:
         "keypoints alone leave. Standard MPJPE averages the joint errors; the paper's formula "
         "takes per frame the root of the SUM of squared joint errors (about sqrt(24) = 4.9x "
         "larger). PA-MPJPE aligns each frame by a similarity transform first. The cost of a "
-        "calibration is its MPJPE minus gt's in the same trial (same keypoints), so keypoint "
-        "noise common to both cancels.", ""]
+        "calibration is its MPJPE minus gt's in the same trial (same keypoints, the joints both "
+        "reconstructed), so keypoint noise common to both cancels.", ""]
     lines += [f"**Warning:** {w}" for w in results.get("warnings", [])]
     lines += [""] if results.get("warnings") else []
+    for stage, label in stages:
+        lines += [f"## The cost of each calibration ({label}): Table 5 redone, {rig} ({env})",
+                  ""] + cost_table(results, stage) + [""]
     for key, title in MEASURES:
+        if key in (COST, FLOOR):  # in Table 5 redone above, paired, with the spread
+            continue
         lines += [f"## {title}", "",
                   "| Cameras | Environment | Stage | " + " | ".join(names) + " |",
                   "|---|---|---|" + "---|" * len(names)]
@@ -101,8 +148,13 @@ def markdown(results: dict) -> str:
         if stage in m:
             lines.append(f"| {name} | {m[stage]['missing_joints']} | {m[stage]['total_joints']} |")
     d = results["detections"]
-    lines += ["", "Keypoint views over all trials: " + ", ".join(f"{k} {v}" for k, v in d.items())
-              + "."]
+    lines += ["", "Keypoint views over all trials: " + ", ".join(
+        f"{k} {v}" for k, v in d.items() if k != "under_two_views") + "."]
+    under = results.get("under_two_views", {})
+    if under:
+        lines += ["", "Joints detected by fewer than two cameras, not triangulated (frames over "
+                  "all trials, counted in the missing joints): " + ", ".join(
+                      f"{j} {n}" for j, n in under.items()) + "."]
     failures = [f"- {name}: {msg}" for name, m in methods.items() for msg in m["failures"]]
     if failures:
         lines += ["", "## Failures", ""] + failures

@@ -287,8 +287,9 @@ class TrajectoryConfig(_Strict):
                 self.radius_mm) <= 1e6:
             raise ValueError("radius_mm: expected radii in 0..1e6 mm")
         if self.kind == "spring":
-            for f in ("closeups", "walk_radius_mm", "height_mm"):
-                if f in self.model_fields_set:
+            # Their defaults are allowed: the resolved configuration lists every field.
+            for f, default in (("closeups", 0), ("walk_radius_mm", None), ("height_mm", None)):
+                if getattr(self, f) != default:
                     raise ValueError(f"{f}: only a session trajectory (kind: session) has it")
         if self.height_mm is not None and not -1e5 <= self.height_mm[0] <= self.height_mm[1] \
                 <= 1e5:

@@ -80,7 +80,8 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None) -> "Dataset":
         raise UnusableRigError(f"rig {cfg.name!r}: {e}") from None
     gt = rig.ground_truth()
     coverage = rig.coverage(gt)
-    warnings, unusable = coverage_warnings(coverage, len(rig.trajectory))
+    warnings, unusable = coverage_warnings(coverage, len(rig.trajectory),
+                                           cfg.trajectory.kind == "session")
     if len(unusable) == len(rig.cameras):
         raise UnusableRigError(
             f"rig {cfg.name!r}: no camera would see the board: " + "; ".join(warnings)

@@ -324,8 +324,11 @@ class Rig:
 MIN_BOARD_SPAN_PX = 20.0
 
 
-def coverage_warnings(coverage: dict[str, dict], frames: int) -> tuple[list[str], list[str]]:
-    """(warnings, unusable cameras) for a dataset's coverage (``Rig.coverage``)."""
+def coverage_warnings(coverage: dict[str, dict], frames: int,
+                      partial_by_design: bool = False) -> tuple[list[str], list[str]]:
+    """(warnings, unusable cameras) for a dataset's coverage (``Rig.coverage``).
+    ``partial_by_design``: a session, in which each camera sees the board only part of the time
+    by design; frames out of view are then no warning (the report counts them per pair)."""
     warnings, unusable = [], []
     for name, c in coverage.items():
         if c["frames_in_view"] == 0:
@@ -336,6 +339,8 @@ def coverage_warnings(coverage: dict[str, dict], frames: int) -> tuple[list[str]
                             f"(below {MIN_BOARD_SPAN_PX:.0f} px no detector finds it): check "
                             f"the camera's focal length and trajectory.depth_mm")
             unusable.append(name)
+        elif partial_by_design:
+            continue
         elif c["frames_partly_out"]:
             warnings.append(f"camera {name!r}: the board is partly out of view in "
                             f"{len(c['frames_partly_out'])} of {frames} frames")

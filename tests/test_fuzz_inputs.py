@@ -34,6 +34,20 @@ BASE = {
     "environment": {"kind": "clean", "supersampling": 1},
 }
 
+# A small studio: cameras placed by a layout, a session trajectory, calibration settings.
+STUDIO = {
+    "name": "fzs", "seed": 4,
+    "studio": {"layout": "ring", "count": 3, "radius_mm": 1200.0, "height_mm": [1000.0],
+               "look_at_mm": [0.0, 0.0, 900.0],
+               "lenses": [{"width": 160, "height": 120, "fx": 150.0, "fy": 150.0, "cx": 79.5,
+                           "cy": 59.5, "dist": [-0.05, 0.0, 0.0, 0.0]}]},
+    "pattern": {"kind": "charuco", "squares_x": 5, "squares_y": 4, "square_mm": 60.0,
+                "marker_mm": 45.0, "dictionary": "DICT_4X4_50"},
+    "trajectory": {"kind": "session", "frames": 3, "turns": 1.0, "closeups": 1},
+    "environment": {"kind": "clean", "supersampling": 1},
+    "calibration": {"loss": "soft_l1"},
+}
+
 NASTY = [None, True, False, 0, -1, 1, 2, 1.5, 1e12, -1e12, 1e-300, 2**70, 1000, 0.0,
          float("nan"), float("inf"), float("-inf"), "", ".", "..", "../../x", "/abs/x",
          "x" * 300, "abc", "9", "a/b", [], [1], [1, 2, 3], [float("nan"), 0, 0], {}, {"a": 1}]
@@ -46,7 +60,12 @@ EXTRA_KEYS = [("pattern", "square_mm"), ("pattern", "squares_x"), ("pattern", "s
               ("pattern", "dictionary"), ("trajectory", "depth_mm"), ("trajectory", "radius_mm"),
               ("trajectory", "tilt_deg"), ("environment", "blur_sigma_px"),
               ("environment", "noise_sigma"), ("environment", "background"),
-              ("cameras", 0, "skew"), ("cameras", 1, "up"), ("cameras", 0, "k1"), ("colour",)]
+              ("cameras", 0, "skew"), ("cameras", 1, "up"), ("cameras", 0, "k1"), ("colour",),
+              ("studio", "arc_deg"), ("studio", "size_mm"), ("studio", "layout"),
+              ("studio", "names"), ("trajectory", "kind"), ("trajectory", "closeups"),
+              ("trajectory", "walk_radius_mm"), ("trajectory", "height_mm"),
+              ("calibration", "intrinsics_views"), ("calibration", "refine_intrinsics"),
+              ("calibration", "loss"), ("calibration", "loss_scale_px")]
 
 
 def _leaves(d, prefix=()):
@@ -76,7 +95,8 @@ def _legal_looking(d, rng: random.Random) -> None:
     make unusable datasets without breaking any rule (a lens of fx 1.5, a board 500 m away)."""
     path = rng.choice([p for p in _leaves(d) if p and isinstance(_get(d, p), (int, float))
                        and not isinstance(_get(d, p), bool) and p[-1] not in ("seed",)]
-                      + [("trajectory", "depth_mm"), ("cameras", 1, "look_at_mm")])
+                      + [("trajectory", "depth_mm")]
+                      + ([("cameras", 1, "look_at_mm")] if "cameras" in d else []))
     if path == ("trajectory", "depth_mm"):
         near = rng.choice([50.0, 300.0, 2e3, 2e4, 5e5])
         value = [near, near * rng.choice([1.0, 2.0])]
@@ -95,8 +115,9 @@ def _get(d, path):
 
 
 def mutated_rig(rng: random.Random) -> bytes:
-    """A rig file: the base with 1-3 mutations, sometimes broken at the text level."""
-    d = copy.deepcopy(BASE)
+    """A rig file: the base (a pair, or a studio) with 1-3 mutations, sometimes broken at the
+    text level."""
+    d = copy.deepcopy(STUDIO if rng.random() < 0.3 else BASE)
     if rng.random() < 0.4:
         for _ in range(rng.randint(1, 2)):
             _legal_looking(d, rng)

@@ -1,6 +1,8 @@
 """pose-eval against exact ground truth: placement, detections, triangulation, fit, metrics, CLI.
 
-Rigs are the paper's (configs/paper/*.yaml); estimated rigs are the true ones with known errors.
+Rigs are the paper's (configs/paper/*.yaml) and two studios written here (a Human3.6M-like
+rectangle of 4 cameras, a TotalCapture-like ring of 8); estimated rigs are the true ones with
+known errors.
 """
 
 import json
@@ -10,9 +12,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from pose_eval import cli
-from pose_eval.body import forward, load_body_model
+from pose_eval.body import forward, load_body_model, to_mm
 from pose_eval.fit import fit_smpl
 from pose_eval.metrics import mpjpe, pa_mpjpe, paper_mpjpe, pose_metrics, similarity_align
 from pose_eval.motion import JOINT, make_motion
@@ -21,7 +24,7 @@ from pose_eval.observe import (DetectorModel, observe, read_openpose, scene_occl
 from pose_eval.reconstruct import triangulate_joints
 from pose_eval.scene import in_true_world, in_view, make_scene, place_body, rig_axes
 from stereo_bench.camera import compose, invert, matrix_to_rodrigues, rodrigues_to_matrix
-from stereo_bench.config import load_rig
+from stereo_bench.config import load_rig, parse_rig
 from stereo_bench.pipeline import load_run, rig_fingerprint
 from stereo_bench.rundir import RunPaths, write_json
 
@@ -38,10 +41,17 @@ def cameras(path):
     return load_rig(path).cameras_true()
 
 
-def turn_second_camera(cams, deg):
-    """The rig with camera 1 turned by ``deg`` about the world's vertical (a vergence error)."""
-    R = rodrigues_to_matrix(np.array([0.0, np.radians(deg), 0.0])) @ cams[1].R
-    return [cams[0], cams[1].with_params(rvec=matrix_to_rodrigues(R))]
+def turn_camera(cams, deg, index=1, about_centre=False):
+    """The rig with camera ``index`` turned by ``deg`` about its image's vertical axis (for the
+    paper's pairs, the world's vertical: a vergence error). about_centre keeps the camera
+    centre (an orientation error alone); otherwise the translation t is kept, as the pairs'
+    numbers were measured, and the centre of a camera away from the origin moves a little."""
+    cam = cams[index]
+    turn = rodrigues_to_matrix(np.array([0.0, np.radians(deg), 0.0]))
+    tvec = turn @ cam.tvec if about_centre else cam.tvec
+    out = list(cams)
+    out[index] = cam.with_params(rvec=matrix_to_rodrigues(turn @ cam.R), tvec=tvec)
+    return out
 
 
 def standing(model, cams, yaw=0.0):
@@ -51,6 +61,45 @@ def standing(model, cams, yaw=0.0):
     return place_body(cams, joints, vertices, model.faces)
 
 
+def studio(kind: str) -> dict:
+    """A studio's rig file data, cameras listed one by one, all looking at [0, 0, 1000] in a z-up
+    world (floor z = 0): ``h36m``, 4 cameras at 1500 mm on the corners of a 3600 x 8400 mm
+    rectangle, 4.57 m from its centre (Human3.6M-like); ``ring``, 8 cameras on a 3500 mm circle
+    at heights alternating 1500 / 2500 mm (TotalCapture-like)."""
+    if kind == "h36m":
+        places = [(x, y, 1500.0) for x, y in ((1800, 4200), (-1800, 4200), (-1800, -4200),
+                                                (1800, -4200))]
+        lens = dict(width=1000, height=1000, fx=1145.0, fy=1145.0, cx=499.5, cy=499.5,
+                    dist=[-0.2, 0.24, 0, 0, 0])
+    else:
+        angles = np.radians(45.0 * np.arange(8))
+        places = [(3500 * np.cos(a), 3500 * np.sin(a), 1500.0 + 1000.0 * (i % 2))
+                  for i, a in enumerate(angles)]
+        lens = dict(width=1920, height=1080, fx=1100.0, fy=1100.0, cx=959.5, cy=539.5,
+                    dist=[-0.05, 0.01, 0, 0, 0])
+    cams = [dict(name=f"{kind}{i}", **lens, position_mm=[float(v) for v in p],
+                 look_at_mm=[0.0, 0.0, 1000.0], up=[0.0, 0.0, 1.0]) for i, p in enumerate(places)]
+    return {"name": f"{kind}_studio", "cameras": cams, "pattern": {"kind": "charuco"}}
+
+
+def outward_ring() -> dict:
+    """The ring's cameras turned to look outwards, away from its centre: no place for a body."""
+    rig = studio("ring")
+    for cam in rig["cameras"]:
+        cam["look_at_mm"] = [2 * v for v in cam["position_mm"][:2]] + [1000.0]
+    return rig
+
+
+def studio_cameras(kind: str):
+    return parse_rig(studio(kind), kind).cameras_true()
+
+
+def studio_file(tmp_path: Path, kind: str) -> Path:
+    path = tmp_path / f"{kind}.yaml"
+    path.write_text(yaml.safe_dump(studio(kind)))
+    return path
+
+
 # --- scene -----------------------------------------------------------------------------------
 
 def test_body_stands_upright_in_view_and_faces_the_rig(model):
@@ -58,7 +107,8 @@ def test_body_stands_upright_in_view_and_faces_the_rig(model):
     scene = make_scene(cams, "walk_circle", 30, model=model)
     for cam in cams:  # every vertex of every frame is seen
         assert in_view(cam, scene.vertices).all()
-    centre, axis, up = rig_axes(cams)
+    centre, axis, up, surrounds = rig_axes(cams)
+    assert not surrounds  # a pair looks the same way
     J = scene.joints
     assert ((J[:, JOINT["head"]] - J[:, JOINT["pelvis"]]) @ up > 1000 * 0.5).all()
     # Facing the rig: the body's left is on the image's right, as in a mirror.
@@ -89,15 +139,16 @@ def test_estimated_rig_is_placed_at_the_true_reference_pose():
 
 # --- triangulation through true and estimated cameras ----------------------------------------
 
-@pytest.mark.parametrize("rig", [WIDE, MIXED], ids=["wide_pair", "mixed_pair"])
+@pytest.mark.parametrize("rig", [WIDE, MIXED, "h36m", "ring"],
+                         ids=["wide_pair", "mixed_pair", "h36m", "ring"])
 def test_noise_free_keypoints_through_true_cameras_are_exact(model, rig):
-    cams = cameras(rig)
+    cams = studio_cameras(rig) if isinstance(rig, str) else cameras(rig)
     scene = make_scene(cams, "walk_circle", 10, model=model)
     kp = observe(cams, scene, DetectorModel(), np.random.default_rng(0))
     joints, dropped = triangulate_joints(cams, kp)
     m = pose_metrics(joints, scene.joints)
     assert dropped == 0 and m["missing_joints"] == 0
-    # measured 2e-12 mm (wide, k1 = 0.5) and 2e-11 mm (mixed)
+    # measured 2e-12 mm (wide, k1 = 0.5) and 2e-11 mm (mixed), 2e-13 mm on the studios
     assert m["mpjpe_mm"] < 1e-6 and m["paper_mpjpe_mm"] < 1e-6 and m["pa_mpjpe_mm"] < 1e-6
 
 
@@ -105,7 +156,7 @@ def test_calibration_error_gives_growing_mpjpe(model):
     cams = cameras(WIDE)
     scene = make_scene(cams, "walk_circle", 10, model=model)
     kp = observe(cams, scene, DetectorModel(), np.random.default_rng(0))
-    errors = [mpjpe(triangulate_joints(turn_second_camera(cams, d), kp)[0], scene.joints)
+    errors = [mpjpe(triangulate_joints(turn_camera(cams, d), kp)[0], scene.joints)
               for d in (0.03, 0.1, 0.3)]
     # measured 18, 59, 167 mm: a 150 mm baseline at 2-4 m turns vergence errors into depth
     assert 10 < errors[1] and errors[0] < errors[1] < errors[2]
@@ -243,6 +294,120 @@ def test_smpl_fit_recovers_noise_free_joints(model):
     np.testing.assert_allclose(J * 1000, fit.joints, atol=1e-6)
 
 
+# --- studios: cameras that surround the subject -------------------------------------------------
+
+def test_rigs_that_surround_are_told_apart_by_geometry():
+    for rig in (WIDE, MIXED):
+        assert not rig_axes(cameras(rig)).surrounds
+    for kind in ("h36m", "ring"):
+        centre, axis, up, surrounds = rig_axes(studio_cameras(kind))
+        assert surrounds
+        np.testing.assert_allclose(centre, [0, 0, 1000], atol=1e-6)  # where they all look
+        np.testing.assert_allclose(up, [0, 0, 1], atol=1e-12)
+        assert abs(axis @ up) < 1e-12  # camera 0's view direction, horizontal
+    # Ceiling cameras looking 45 deg down: the mean optical axis is 0.7 long (it points at the
+    # floor), yet they surround the point they look at.
+    ceiling = studio("ring")
+    for cam in ceiling["cameras"]:
+        x, y, _ = cam["position_mm"]
+        cam["position_mm"] = [x * 2000 / 3500, y * 2000 / 3500, 3000.0]
+    cams = parse_rig(ceiling).cameras_true()
+    assert np.linalg.norm(np.mean([c.R[2] for c in cams], axis=0)) > 0.7
+    assert rig_axes(cams).surrounds
+    # Two cameras 150 deg apart have no hull, nor a front (mean axis 0.26), but one target.
+    wide = studio("ring")
+    wide["cameras"] = [wide["cameras"][0], wide["cameras"][0] | {"name": "far", "position_mm": [
+        3500 * np.cos(np.radians(150)), 3500 * np.sin(np.radians(150)), 1500.0]}]
+    two = parse_rig(wide).cameras_true()
+    assert np.linalg.norm(np.mean([c.R[2] for c in two], axis=0)) < 0.5
+    centre, axis, up, surrounds = rig_axes(two)
+    assert surrounds
+    np.testing.assert_allclose(centre, [0, 0, 1000], atol=1e-6)
+    # Cameras looking outwards neither share a front nor look at a point before them all.
+    outwards = outward_ring()
+    with pytest.raises(ValueError, match="neither look the same way .* nor look at a point"):
+        rig_axes(parse_rig(outwards).cameras_true())
+
+
+@pytest.mark.parametrize("kind", ["h36m", "ring"])
+def test_studio_body_stands_at_the_centre_on_its_floor_facing_camera_0(model, kind):
+    cams = studio_cameras(kind)
+    scene = make_scene(cams, "walk_circle", 15, model=model)
+    assert scene.surrounded
+    for cam in cams:  # every vertex of every frame, in every camera
+        assert in_view(cam, scene.vertices).all()
+    # Half the stature above its floor sits at the centre the cameras look at: the stand-in
+    # is 1710 mm tall, so its soles are at z = 145 mm whatever the motion, arms raised or not.
+    rest = forward(model, np.zeros((1, 69)), np.zeros((1, 3)))[1][0]
+    stature = to_mm(np.ptp(rest[:, 1]))
+    raised = make_scene(cams, "arm_raise", 60, model=model)  # overhead at the end
+    assert raised.vertices[..., 2].max() > scene.vertices[..., 2].max() + 300
+    for s in (scene, raised):
+        assert s.vertices[..., 2].min() == pytest.approx(1000 - stature / 2, abs=3)
+    # The walk goes through the volume around its centre.
+    pelvis = scene.joints[:, JOINT["pelvis"], :2]
+    assert np.linalg.norm(0.5 * (pelvis.min(0) + pelvis.max(0))) < 300
+    # Facing camera 0: its image shows the body's left on the right, as in a mirror.
+    u = cams[0].project(standing(model, cams).joints[0])[:, 0]
+    assert u[JOINT["left_hip"]] > u[JOINT["right_hip"]]
+    with pytest.raises(ValueError, match="--distance-mm"):
+        make_scene(cams, "walk_circle", 2, model=model, distance_mm=3000.0)
+
+
+def test_occlusion_in_a_ring_of_eight_hides_the_far_side(model):
+    cams = studio_cameras("ring")  # ring2 (+y) sees the body's left side, ring6 its right
+    hidden = scene_occlusion(cams, standing(model, cams))
+    assert hidden.shape == (8, 1, 24)
+    assert not hidden[0].any()  # measured: from the front, arms down, nothing is hidden
+    for cam, near, far in ((2, "left", "right"), (6, "right", "left")):
+        for limb in ("knee", "ankle", "elbow", "wrist"):
+            assert hidden[cam, 0, JOINT[f"{far}_{limb}"]]
+            assert not hidden[cam, 0, JOINT[f"{near}_{limb}"]]
+        assert not hidden[cam, 0, JOINT["head"]]
+
+
+def test_joints_seen_by_fewer_than_two_cameras_are_missing_and_counted(model):
+    cams = studio_cameras("h36m")
+    scene = make_scene(cams, "walk_circle", 2, model=model)
+    kp = observe(cams, scene, DetectorModel(), np.random.default_rng(0))
+    kp.confidence[1:, 0, 5] = 0  # frame 0, right_knee: camera 0 alone
+    kp.confidence[2:, 1, 6] = 0  # frame 1, spine2: cameras 0 and 1, enough
+    kp.pixels[kp.confidence == 0] = np.nan
+    assert np.argwhere(kp.under_two_views()).tolist() == [[0, 5]]
+    assert kp.counts()["under_two_views"] == 1
+    joints, dropped = triangulate_joints(cams, kp)
+    m = pose_metrics(joints, scene.joints)
+    assert dropped == 0 and m["missing_joints"] == 1 and np.isnan(joints[0, 5]).all()
+    assert m["mpjpe_mm"] < 1e-6
+
+
+@pytest.mark.parametrize("kind, floor_mm", [("h36m", (4.0, 8.0)), ("ring", (1.5, 3.5))])
+def test_studio_gt_floor_and_the_cost_of_a_turned_camera(model, kind, floor_mm):
+    cams = studio_cameras(kind)
+    scene = make_scene(cams, "walk_circle", 15, model=model)
+    occluded = scene_occlusion(cams, scene)
+    turns = (0.1, 0.3, 1.0)
+    rigs = {"truth": list(cams)} | {f"{d} deg": turn_camera(cams, d, about_centre=True)
+                                     for d in turns}
+    for trial in range(3):
+        kp = observe(cams, scene, DetectorModel(1.0), np.random.default_rng([0, trial]), occluded)
+        entries, _ = cli.evaluate_trial(cams, rigs, kp, scene)
+        gt = entries["gt"]["triangulated"]
+        assert gt["missing_joints"] == 0
+        # Measured over 10 trials of 15 frames at 1 px: 5.94 ± 0.20 mm (5.60-6.23) on the
+        # 4-camera rectangle, 2.49 ± 0.06 mm (2.41-2.56) on the 8-camera ring; at 4.6 and 3.7 m
+        # a pixel spans 4.0 and 3.3 mm, which more views and wider angles average down. The
+        # bounds leave ten standard deviations either way and stay under the aims of 15 and 10.
+        assert floor_mm[0] < gt["mpjpe_mm"] < floor_mm[1]
+        # The true cameras passed as an estimate cost exactly nothing: the same numbers.
+        assert entries["truth"]["triangulated"]["excess_mpjpe_mm"] == 0.0
+        # Camera 1 turned about its centre (measured at 0.1 / 0.3 / 1 deg: +1.8 / +10.5 / +46 mm
+        # on the rectangle, +0.39 / +2.5 / +12 mm on the ring, whose 8 views outvote one).
+        costs = [entries[f"{d} deg"]["triangulated"]["excess_mpjpe_mm"] for d in turns]
+        assert 0 < costs[0] < costs[1] < costs[2]
+        assert costs[2] > 5 * costs[0]
+
+
 # --- command line ------------------------------------------------------------------------------
 
 def write_run(root: Path, rig: Path, rigs: dict, seeds=(0,)) -> Path:
@@ -288,7 +453,7 @@ def test_cli_gt_from_a_rig_file(tmp_path, capsys):
 
 def test_cli_all_methods_of_a_run_with_a_failure(tmp_path, capsys):
     truth = cameras(WIDE)
-    run = write_run(tmp_path / "run", WIDE, {"zhang": turn_second_camera(truth, 0.1),
+    run = write_run(tmp_path / "run", WIDE, {"zhang": turn_camera(truth, 0.1),
                                              "bouguet": truth, "tsai": "too few views"},
                     seeds=(3, 4))
     assert [t.seed for t in load_run(run)] == [3, 4]
@@ -339,3 +504,63 @@ def test_cli_fit_smpl_reports_both_stages(tmp_path):
     assert gt["triangulated"]["mpjpe_mm"]["mean"] < 1e-6
     assert gt["fitted"]["mpjpe_mm"]["mean"] < 5
     assert "| mixed_pair | clean | SMPL fit |" in (out / "report.md").read_text()
+
+
+def test_cli_gt_on_a_studio_rig_file(tmp_path, capsys):
+    rig, out = studio_file(tmp_path, "h36m"), tmp_path / "out"
+    assert cli.main(["--calib", "gt", "--rig", str(rig), "--frames", "10", "--out", str(out)]) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert res["settings"]["surrounded"] and res["settings"]["distance_mm"] == pytest.approx(
+        np.linalg.norm([1800, 4200, 500]))  # the cameras' mean distance from the centre
+    gt = res["methods"]["gt"]["triangulated"]
+    assert gt["mpjpe_mm"]["n"] == 1 and 4.0 < gt["mpjpe_mm"]["mean"] < 8.0  # 1 px, as above
+    assert gt["excess_mpjpe_mm"]["mean"] == 0 and gt["missing_joints"] == 0
+    assert res["under_two_views"] == {} and res["detections"]["under_two_views"] == 0
+    report = (out / "report.md").read_text()
+    assert "Table 5 redone" in report and "| gt | " in report and "0 (the floor)" in report
+    assert (out / "mpjpe.png").is_file() and (out / "skeleton.png").is_file()
+    # Most detections missed: joints seen by fewer than two cameras are reported, per joint.
+    assert cli.main(["--calib", "gt", "--rig", str(rig), "--frames", "10", "--miss-rate", "0.6",
+                     "--out", str(out)]) == 0
+    res = json.loads((out / "results.json").read_text())
+    under = sum(res["under_two_views"].values())
+    assert under == res["detections"]["under_two_views"] > 0
+    assert under == res["methods"]["gt"]["triangulated"]["missing_joints"]
+    assert any("fewer than two cameras" in w for w in res["warnings"])
+    # A studio has no distance to choose; cameras looking outwards have no place for a body.
+    assert cli.main(["--calib", "gt", "--rig", str(rig), "--distance-mm", "3000",
+                     "--out", str(out)]) == 2
+    assert "--distance-mm" in capsys.readouterr().err
+    (tmp_path / "outwards.yaml").write_text(yaml.safe_dump(outward_ring()))
+    assert cli.main(["--calib", "gt", "--rig", str(tmp_path / "outwards.yaml"),
+                     "--out", str(out)]) == 2
+    err = capsys.readouterr().err.replace("\n", "")
+    assert "outwards.yaml" in err and "neither look the same way" in err
+
+
+def test_cli_costs_of_a_studio_run_with_their_spread(tmp_path):
+    rig = studio_file(tmp_path, "h36m")
+    truth = cameras(rig)
+    run = write_run(tmp_path / "run", rig, {"zhang": turn_camera(truth, 0.3, about_centre=True),
+                                            "bouguet": truth})
+    out = tmp_path / "out"
+    args = ["--calib", "all", "--run", str(run), "--frames", "10", "--out", str(out)]
+    assert cli.main(args + ["--trials", "3"]) == 0
+    res = json.loads((out / "results.json").read_text())
+    m = {k: v["triangulated"] for k, v in res["methods"].items()}
+    cost = m["zhang"]["excess_mpjpe_mm"]
+    assert cost["n"] == 3 and cost["std"] > 0 and 5 < cost["min"] <= cost["mean"] <= cost["max"]
+    # Paired in each trial: the method's MPJPE minus gt's on the same keypoints (no joint is
+    # missing here, so the paired mean and the difference of the means agree).
+    for t in res["trials"]:
+        e = t["methods"]
+        assert e["zhang"]["triangulated"]["excess_mpjpe_mm"] == pytest.approx(
+            e["zhang"]["triangulated"]["mpjpe_mm"] - e["gt"]["triangulated"]["mpjpe_mm"],
+            abs=1e-9)
+    assert m["zhang"]["gt_mpjpe_mm"] == m["gt"]["mpjpe_mm"]  # the floor of the same trials
+    # The exact rig, through the run's cam_from_cam0 and back: no cost but rounding.
+    assert abs(m["bouguet"]["excess_mpjpe_mm"]["max"]) < 1e-6
+    assert "| zhang | " in (out / "report.md").read_text()
+    assert "no spread" not in (out / "report.md").read_text()
+    assert cli.main(args + ["--trials", "1"]) == 0
+    assert "no spread: 1 trial" in (out / "report.md").read_text()
