@@ -55,7 +55,7 @@ from scipy.spatial import ConvexHull, QhullError
 
 from stereo_bench.camera import Camera, compose, matrix_to_rodrigues, radial_fold_radius
 from stereo_bench.config import load_rig
-from stereo_bench.rig import volume_centre, world_up
+from stereo_bench.rig import ground_axes, volume_centre, world_up
 from stereo_bench.rundir import RunPaths
 
 from .body import forward, load_body_model, rest_skeleton, to_mm
@@ -101,8 +101,7 @@ class RigAxes(NamedTuple):
 def _inside_from_above(cameras: list[Camera], point: np.ndarray, up: np.ndarray) -> bool:
     """``point`` is, in the ground plane across ``up``, inside the convex hull of the camera
     centres (on its edge counts: cameras on three sides of it surround it)."""
-    e1 = np.linalg.svd(up[None])[2][1]  # two unit vectors across up span the ground plane
-    e2 = np.cross(up, e1)
+    e1, e2 = ground_axes(up)
     ground = np.array([[c.center @ e1, c.center @ e2] for c in cameras])
     try:
         hull = ConvexHull(ground)
@@ -130,13 +129,14 @@ def rig_axes(cameras: list[Camera]) -> RigAxes:
     looked_at = point is not None and all(c.world_to_cam(point)[2] > 0 for c in cameras)
     if looked_at and (np.linalg.norm(axis) < MIN_MEAN_AXIS
                       or _inside_from_above(cameras, point, up)):
-        towards = point - cameras[0].center
-        towards -= (towards @ up) * up
-        if np.linalg.norm(towards) < 1e-6 * np.linalg.norm(point - cameras[0].center):
+        try:
+            towards = ground_axes(up, point - cameras[0].center)[0]
+        except ValueError:
             raise ValueError(f"camera {cameras[0].name!r} is straight above or below the point "
                              f"the cameras look at: the body faces camera 0 horizontally, and "
-                             f"there is no horizontal direction to it; list another camera first")
-        return RigAxes(point, towards / np.linalg.norm(towards), up, True)
+                             f"there is no horizontal direction to it; list another camera "
+                             f"first") from None
+        return RigAxes(point, towards, up, True)
     if np.linalg.norm(axis) < MIN_MEAN_AXIS:
         raise ValueError(f"the cameras neither look the same way (their mean optical axis is "
                          f"{np.linalg.norm(axis):.2f} long) nor look at a point in front of "

@@ -26,7 +26,7 @@ from .camera import Camera, project_points  # noqa: E402
 from .dataset import Dataset  # noqa: E402
 from .detect import CameraDetections  # noqa: E402
 from .metrics import projection_difference_map  # noqa: E402
-from .rig import world_up  # noqa: E402
+from .rig import ground_axes, world_up  # noqa: E402
 from .rundir import RunPaths, TrialPaths  # noqa: E402
 
 
@@ -101,10 +101,7 @@ def _world_axes(cameras: list[Camera]) -> tuple[np.ndarray, list[str]]:
     is the cameras' (rig.world_up), so a pair (world y down) and a studio (z up) both stand
     upright; a basis vector along a world axis is named after it."""
     up = world_up(cameras)
-    first = np.eye(3)[np.argmin(np.abs(up))]  # the world axis most orthogonal to up
-    e1 = first - (first @ up) * up
-    e1 /= np.linalg.norm(e1)
-    basis = np.stack([e1, np.cross(up, e1), up])
+    basis = np.stack([*ground_axes(up), up])
     labels = []
     for v in basis:
         k = int(np.argmax(np.abs(v)))

@@ -135,6 +135,20 @@ def world_up(cameras: list[Camera]) -> np.ndarray:
     return up / np.linalg.norm(up)
 
 
+def ground_axes(up: np.ndarray, towards: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors (e1, e2 = up x e1) spanning the ground plane across the unit ``up``:
+    e1 along ``towards`` projected onto it (default: the world axis most orthogonal to up).
+    ValueError when ``towards`` is (nearly) vertical."""
+    if towards is None:
+        towards = np.eye(3)[np.argmin(np.abs(up))]
+    e1 = towards - (towards @ up) * up
+    if np.linalg.norm(e1) < 1e-6 * np.linalg.norm(towards):
+        raise ValueError("the direction is vertical: it has no horizontal part")
+    e1 = e1 / np.linalg.norm(e1)
+    return e1, np.cross(up, e1)
+
+
 def volume_centre(cameras: list[Camera]) -> np.ndarray:
     """The point nearest to every camera's optical axis (least squares), (3,) mm: for cameras
     that all look at one point, that point. Raises ValueError when the axes are (nearly)
@@ -172,13 +186,11 @@ def session(cameras: list[Camera], board_centre: np.ndarray, board_radius: float
     incommensurate with the turn, so that each camera sees it from varied angles.
     """
     centre, up = volume_centre(cameras), world_up(cameras)
-    to_first = cameras[0].center - centre
-    e1 = to_first - (to_first @ up) * up
-    if np.linalg.norm(e1) < 1e-6:
+    try:
+        e1, e2 = ground_axes(up, cameras[0].center - centre)
+    except ValueError:
         raise ValueError(f"camera {cameras[0].name!r}: directly above or below the volume's "
-                         "centre; a session needs it to stand around the volume")
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(up, e1)
+                         "centre; a session needs it to stand around the volume") from None
     horizontal = []
     for c in cameras:
         v = c.center - centre

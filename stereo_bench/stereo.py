@@ -376,6 +376,11 @@ def cam_from_cam0(cameras: Sequence[Camera]) -> tuple[np.ndarray, np.ndarray]:
     return compose(R, t, *invert(R[0], t[0]))
 
 
+def _centres(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Camera centres (C, 3) in the reference frame from cam_from_cam0 (R (C,3,3), t (C,3))."""
+    return -np.einsum("cji,cj->ci", R, t)
+
+
 def rig_errors(estimated: Sequence[Camera], truth: Sequence[Camera]) -> dict[str, np.ndarray]:
     """Per camera (C,), the estimated cam_from_cam0 against the true one (both from cam_from_world).
 
@@ -388,8 +393,7 @@ def rig_errors(estimated: Sequence[Camera], truth: Sequence[Camera]) -> dict[str
         raise ValueError(f"rig_errors: {len(estimated)} estimated and {len(truth)} true cameras")
     Re, te = cam_from_cam0(estimated)
     Rt, tt = cam_from_cam0(truth)
-    centre_e = -np.einsum("cji,cj->ci", Re, te)
-    centre_t = -np.einsum("cji,cj->ci", Rt, tt)
+    centre_e, centre_t = _centres(Re, te), _centres(Rt, tt)
     return {"rotation_deg": np.degrees(geodesic_distance(Rt, Re)),
             "translation_mm": np.linalg.norm(te - tt, axis=-1),
             "baseline_mm": np.linalg.norm(te, axis=-1) - np.linalg.norm(tt, axis=-1),
@@ -420,8 +424,7 @@ def aligned_rig_errors(estimated: Sequence[Camera], truth: Sequence[Camera]) -> 
     line (ValueError otherwise)."""
     Re, te = cam_from_cam0(estimated)
     Rt, tt = cam_from_cam0(truth)
-    centre_e = -np.einsum("cji,cj->ci", Re, te)
-    centre_t = -np.einsum("cji,cj->ci", Rt, tt)
+    centre_e, centre_t = _centres(Re, te), _centres(Rt, tt)
     s, R, t = similarity_transform(centre_e, centre_t)
     # The aligned camera maps true-frame points by cam_from_ref_est o (ref_est_from_ref_true).
     return {"rotation_deg": np.degrees(geodesic_distance(Rt, Re @ R.T)),
