@@ -26,6 +26,7 @@ MAX_IMAGE_PIXELS = 64_000_000
 MAX_CAMERAS = 64
 MAX_FRAMES = 10_000
 MAX_PATTERN_COUNT = 100  # squares, rows or columns of a board
+MAX_MARKER_ID = 1000  # ArUco dictionaries hold at most 1000 markers
 MAX_BOARD_MM = 1200.0  # the board's outline, per side (its texture is written at 10 px/mm)
 MAX_BLUR_PX = 50.0
 MAX_FILE_BYTES = 1 << 20
@@ -199,11 +200,17 @@ class StudioConfig(_Strict):
 
 def _check_override(field: dataclasses.Field, value):
     """One pattern override, checked against the pattern class's field type and bounds."""
-    if field.type in ("int", int):
+    if field.type in ("bool", bool):
+        if not isinstance(value, bool):
+            raise ValueError(f"pattern.{field.name}: expected true or false, got {value!r}")
+    elif field.type in ("int", int):
         if not isinstance(value, int) or isinstance(value, bool):
             raise ValueError(f"pattern.{field.name}: expected an integer, got {value!r}")
-        if not 2 <= value <= MAX_PATTERN_COUNT:
-            raise ValueError(f"pattern.{field.name}: expected 2..{MAX_PATTERN_COUNT}, got {value}")
+        # Counts of squares, rows or columns, unless the field says its least value (an id).
+        least, most = ((field.metadata["min"], MAX_MARKER_ID) if "min" in field.metadata
+                       else (2, MAX_PATTERN_COUNT))
+        if not least <= value <= most:
+            raise ValueError(f"pattern.{field.name}: expected {least}..{most}, got {value}")
     elif field.type in ("float", float):
         if isinstance(value, bool) or not isinstance(value, (int, float)) \
                 or not math.isfinite(value):

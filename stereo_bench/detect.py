@@ -420,6 +420,13 @@ def _detect_charuco(gray, search: _SearchImage, pattern: Charuco) -> Detection:
     if marker_ids is None:
         return _failed(pattern, "no ArUco marker of the board was found")
     markers = tuple(search.to_full(m).astype(np.float32) for m in markers)
+    # A two-sided board: one side faces the camera; its marker ids tell which.
+    side = pattern
+    if pattern.two_sided:
+        first_back = pattern.back().marker_id_offset
+        if (marker_ids >= first_back).sum() > (marker_ids < first_back).sum():
+            side = pattern.back()
+            board = side.cv_board()
     corners, ids, _, _ = cv2.aruco.CharucoDetector(board).detectBoard(
         gray, markerCorners=markers, markerIds=marker_ids)
     if ids is None or len(ids) < MIN_CHARUCO_CORNERS:
@@ -428,7 +435,12 @@ def _detect_charuco(gray, search: _SearchImage, pattern: Charuco) -> Detection:
                                 f"need {MIN_CHARUCO_CORNERS}")
     points = np.full((len(pattern.ids()), 2), np.nan)
     points[ids.ravel()] = corners.reshape(-1, 2)
-    return Detection(_refine_charuco(gray, points, pattern), pattern.ids(), True)
+    points = _refine_charuco(gray, points, side)
+    if side is not pattern:  # the back's corners in the front's order (the board frame)
+        front = np.full_like(points, np.nan)
+        front[pattern.back_to_front] = points
+        points = front
+    return Detection(points, pattern.ids(), True)
 
 
 def _refine_charuco(gray, points: np.ndarray, pattern: Charuco, sigma: float = 0.8,

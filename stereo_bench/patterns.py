@@ -104,14 +104,18 @@ class Pattern(abc.ABC):
     kind: ClassVar[str]
     code: ClassVar[str]
 
-    margin_mm: float = 10.0  # white quiet zone around the printed features, on every side
+    # White quiet zone around the printed features, on every side. A field's metadata "min" is
+    # its least value (default: any positive number).
+    margin_mm: float = dataclasses.field(default=10.0, metadata={"min": 0.0})
 
     def __post_init__(self) -> None:
         for field in dataclasses.fields(self):
             value = getattr(self, field.name)
             if isinstance(value, (int, float)) and not isinstance(value, bool):
-                if not math.isfinite(value) or value < 0 or (value == 0 and field.name != "margin_mm"):
-                    raise ValueError(f"{self.kind}: {field.name} must be positive, got {value!r}")
+                least = field.metadata.get("min")
+                if not math.isfinite(value) or (value <= 0 if least is None else value < least):
+                    expected = "positive" if least is None else f"at least {least}"
+                    raise ValueError(f"{self.kind}: {field.name} must be {expected}, got {value!r}")
         self._validate()
 
     @property
@@ -164,10 +168,13 @@ class Pattern(abc.ABC):
 
     def texture(self, px_per_mm: float) -> np.ndarray:
         """(H, W) uint8 image of the board, 0 = black print, 255 = white, exact area coverage."""
+        return self._texture_of(self._paint, px_per_mm)
+
+    def _texture_of(self, paint, px_per_mm: float) -> np.ndarray:
         if not (px_per_mm > 0 and math.isfinite(px_per_mm)):
             raise ValueError(f"px_per_mm must be positive, got {px_per_mm!r}")
         black = np.zeros(self.texture_shape(px_per_mm))
-        self._paint(black, self.texture_origin_mm * px_per_mm, float(px_per_mm))
+        paint(black, self.texture_origin_mm * px_per_mm, float(px_per_mm))
         return np.rint(255.0 * (1.0 - np.clip(black, 0.0, 1.0))).astype(np.uint8)
 
     def save_texture(self, path: str | Path, px_per_mm: float) -> Path:
@@ -336,6 +343,14 @@ class Charuco(Pattern):
     default: the board needs 54 markers, its ids 0..249 are the first 250 of DICT_7X7_1000, and the
     smaller dictionary has a larger minimum Hamming distance (corrects 8 bits instead of 6), so
     fewer false or confused ids.
+
+    ``two_sided``: the back carries a second ChArUco board, printed mirrored so that each of its
+    corners lies on a corner of the front (``back()``, with the next ``M`` marker ids of the
+    dictionary: a detector tells the sides apart by their ids), as Caliscope's two-sided boards:
+    cameras on opposite sides of a studio then see the same corners at the same time. The board
+    frame stays the front's; ``back_to_front`` maps the back board's corner indices to it.
+    ``marker_id_offset``: the id of the first marker (the back of a two-sided board uses the
+    ids after the front's).
     """
 
     kind: ClassVar[str] = "charuco"
@@ -346,6 +361,8 @@ class Charuco(Pattern):
     square_mm: float = 15.0
     marker_mm: float = 11.0
     dictionary: str = "DICT_7X7_250"
+    two_sided: bool = False
+    marker_id_offset: int = dataclasses.field(default=0, metadata={"min": 0})
 
     def _validate(self) -> None:
         for field in ("squares_x", "squares_y"):
@@ -356,19 +373,48 @@ class Charuco(Pattern):
         name = self.dictionary
         if not (isinstance(name, str) and name.startswith("DICT_") and hasattr(cv2.aruco, name)):
             raise ValueError(f"{self.kind}: dictionary {self.dictionary!r} is not a cv2.aruco DICT_*")
-        if self.aruco_dictionary().bytesList.shape[0] < self._marker_count():
-            raise ValueError(f"{self.kind}: dictionary {self.dictionary} has too few markers")
+        needed = self.marker_id_offset + self._marker_count() * (2 if self.two_sided else 1)
+        if self.aruco_dictionary().bytesList.shape[0] < needed:
+            raise ValueError(f"{self.kind}: dictionary {self.dictionary} has too few markers "
+                             f"({needed} needed" + (", both sides" if self.two_sided else "")
+                             + ")")
 
     def _marker_count(self) -> int:
         return self.squares_x * self.squares_y // 2
+
+    def back(self) -> "Charuco":
+        """The board printed on the back of a two-sided board, in its own frame (as a camera
+        that sees the back reads it)."""
+        return dataclasses.replace(self, two_sided=False,
+                                   marker_id_offset=self.marker_id_offset + self._marker_count())
+
+    @property
+    def back_to_front(self) -> np.ndarray:
+        """(N,) int: the front corner at which each corner of ``back()`` lies. The back is the
+        front's mirror image across the board's vertical centre line x = squares_x * square_mm
+        / 2, so back corner (row, col) is front corner (row, cols - 1 - col)."""
+        cols, rows = self.pattern_size
+        i, j = np.divmod(np.arange(cols * rows), cols)
+        return i * cols + (cols - 1 - j)
+
+    def back_texture(self, px_per_mm: float) -> np.ndarray:
+        """The back's print seen through the board from the front: ``back()``'s texture mirrored
+        about x = squares_x * square_mm / 2, exactly (painted mirrored, not flipped as an
+        image, whose texel grid need not be symmetric about that line)."""
+        width = self.squares_x * self.square_mm
+        back = self.back()
+        return self._texture_of(lambda black, origin, ppm: back._paint(black, origin, ppm, width),
+                                px_per_mm)
 
     def aruco_dictionary(self) -> cv2.aruco.Dictionary:
         return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
 
     def cv_board(self) -> cv2.aruco.CharucoBoard:
         """The matching OpenCV board, for CharucoDetector and matchImagePoints."""
+        ids = np.arange(self._marker_count(), dtype=np.int32) + self.marker_id_offset
         board = cv2.aruco.CharucoBoard(
-            (self.squares_x, self.squares_y), self.square_mm, self.marker_mm, self.aruco_dictionary()
+            (self.squares_x, self.squares_y), self.square_mm, self.marker_mm,
+            self.aruco_dictionary(), ids
         )
         board.setLegacyPattern(False)
         return board
@@ -384,20 +430,28 @@ class Charuco(Pattern):
     def _feature_bounds_mm(self) -> tuple[float, float, float, float]:
         return (0.0, 0.0, self.squares_x * self.square_mm, self.squares_y * self.square_mm)
 
-    def _paint(self, black: np.ndarray, origin_px: np.ndarray, px_per_mm: float) -> None:
+    def _paint(self, black: np.ndarray, origin_px: np.ndarray, px_per_mm: float,
+               mirror_mm: float | None = None) -> None:
+        """``mirror_mm``: paint the board mirrored about x = mirror_mm / 2 (``back_texture``)."""
+
+        def cells_at(cells, x_mm, y_mm, width_mm, cell_px):
+            if mirror_mm is not None:
+                cells, x_mm = cells[:, ::-1], mirror_mm - x_mm - width_mm
+            _add_cells(black, cells, x_mm * px_per_mm - origin_px[0],
+                       y_mm * px_per_mm - origin_px[1], cell_px)
+
         parity = np.add.outer(np.arange(self.squares_y), np.arange(self.squares_x)) % 2 == 0
-        _add_cells(black, parity, -origin_px[0], -origin_px[1], self.square_mm * px_per_mm)
+        cells_at(parity, 0.0, 0.0, self.squares_x * self.square_mm, self.square_mm * px_per_mm)
         # Markers: 1-bit black border plus the dictionary bits, drawn cell by cell.
         dictionary = self.aruco_dictionary()
         cells = dictionary.markerSize + 2
         cell_px = self.marker_mm / cells * px_per_mm
         inset = (self.square_mm - self.marker_mm) / 2
         white_squares = np.argwhere(~parity)  # row-major (row, col) = marker id order
-        for marker_id, (row, col) in enumerate(white_squares):
+        for marker_id, (row, col) in enumerate(white_squares, self.marker_id_offset):
             bits = cv2.aruco.generateImageMarker(dictionary, marker_id, cells, borderBits=1) == 0
-            x0 = (col * self.square_mm + inset) * px_per_mm - origin_px[0]
-            y0 = (row * self.square_mm + inset) * px_per_mm - origin_px[1]
-            _add_cells(black, bits, x0, y0, cell_px)
+            cells_at(bits, col * self.square_mm + inset, row * self.square_mm + inset,
+                     self.marker_mm, cell_px)
 
 
 PATTERNS: dict[str, type[Pattern]] = {

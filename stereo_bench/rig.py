@@ -298,9 +298,12 @@ class Rig:
         for c, cam in enumerate(self.cameras):
             Pc = cam.world_to_cam(Xw)
             R, _ = self.cam_from_board(cam)
-            # Front side: the board's +z points away from the camera.
+            # Front side: the board's +z points away from the camera (either side of a
+            # two-sided board carries the corners).
             normal_cam = R[:, :, 2]
             front = np.einsum("fi,fni->fn", normal_cam, Pc) > 0
+            if getattr(self.pattern, "two_sided", False):
+                front = np.ones_like(front)
             z = Pc[..., 2]
             ahead = z > 1e-6
             xy = Pc[..., :2] / np.where(ahead, z, 1.0)[..., None]

@@ -242,3 +242,50 @@ def test_similarity_alignment_forgives_reference_and_scale_only():
     src = np.random.default_rng(2).normal(size=(6, 3))
     s, Rq, tq = similarity_transform(src, 2.5 * src @ R[1].T + [1.0, 2.0, 3.0])
     assert abs(s - 2.5) < 1e-12 and np.allclose(Rq, R[1]) and np.allclose(tq, [1, 2, 3])
+
+
+def test_two_sided_board_is_detected_from_behind_at_the_front_corners():
+    """The back of a two-sided ChArUco board: its own marker ids, its corners on the front's
+    corners (the board frame stays the front's), detected as accurately as the front."""
+    from stereo_bench.dataset import render_settings
+    from stereo_bench.detect import detect
+    from stereo_bench.render.analytic import AnalyticRenderer
+
+    d = studio_dict()
+    d["pattern"]["two_sided"] = True
+    cfg = parse_rig(d)
+    rig = Rig.from_config(cfg)
+    board = rig.pattern
+    assert board.back().marker_id_offset == 17 and not board.back().two_sided
+    # The back's corner k lies on front corner back_to_front[k]: mirrored about the centre line.
+    back_xy = board.back().object_points()[:, :2]
+    front_xy = board.object_points()[board.back_to_front, :2]
+    assert np.allclose(front_xy[:, 0], board.squares_x * board.square_mm - back_xy[:, 0])
+    assert np.allclose(front_xy[:, 1], back_xy[:, 1])
+    gt = rig.ground_truth()
+    errors = {True: [], False: []}
+    for c, cam in enumerate(rig.cameras[:2]):
+        renderer = AnalyticRenderer(cam, board, render_settings(cfg))
+        R, t = rig.cam_from_board(cam)
+        for f in range(0, 60, 2):
+            det = detect(renderer.render(R[f], t[f]), board)
+            if det.found:
+                ok = np.isfinite(det.points).all(axis=1)
+                errors[bool(R[f][:, 2] @ t[f] < 0)].append(
+                    np.linalg.norm(det.points[ok] - gt.points[c, f][ok], axis=1))
+    back, front = np.concatenate(errors[True]), np.concatenate(errors[False])
+    assert len(errors[True]) >= 3 and len(errors[False]) >= 3
+    assert np.median(back) < 0.2 and back.max() < 1.0
+    assert np.median(back) < 2 * np.median(front) + 0.05
+
+
+def test_two_sided_board_lets_opposite_cameras_see_it_together():
+    one = Rig.from_config(parse_rig(studio_dict()))
+    d = studio_dict()
+    d["pattern"]["two_sided"] = True
+    two = Rig.from_config(parse_rig(d))
+    # cam1 and cam3 face each other across the ring.
+    for rig, together in ((one, False), (two, True)):
+        seen = rig.ground_truth().visible.sum(axis=2) >= 8
+        shared = int((seen[0] & seen[2]).sum())
+        assert (shared > 10) if together else (shared == 0), shared

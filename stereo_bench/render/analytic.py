@@ -322,27 +322,32 @@ class AnalyticRenderer:
         texel = st.texel_per_sample * max(sample_mm, 1e-9)
         cap = math.sqrt(st.max_texture_texels / float(np.prod(self._size)))
         k = math.floor(_LEVELS_PER_OCTAVE * math.log2(min(1.0 / texel, cap)))
-        if k not in self._levels:
-            self._levels[k] = self._rasterize(2.0 ** (k / _LEVELS_PER_OCTAVE))
+        printed_back = not front and getattr(self.pattern, "two_sided", False)
+        key = (k, printed_back)
+        if key not in self._levels:
+            self._levels[key] = self._rasterize(2.0 ** (k / _LEVELS_PER_OCTAVE), printed_back)
             while len(self._levels) > _LEVELS_KEPT:  # bounded memory; trajectories are smooth
                 self._levels.popitem(last=False)
-        self._levels.move_to_end(k)
-        level = self._levels[k]
-        if front and st.environment == "clean":
+        self._levels.move_to_end(key)
+        level = self._levels[key]
+        if (front or printed_back) and st.environment == "clean":
             return level
         image = level.image.copy()
         inner = image[_PAD:-_PAD, _PAD:-_PAD]
-        if not front:  # the back of the board is blank paper
+        if not front and not printed_back:  # the back of a one-sided board is blank paper
             inner[...] = round(st.white_level * 256)
         if st.environment == "noisy":
             gain = self._shading(inner.shape, R, t, front)
             inner[...] = cv2.multiply(inner, gain, dtype=cv2.CV_16U)
         return _Level(image, level.px_per_mm, level.texel_offset)
 
-    def _rasterize(self, px_per_mm: float) -> _Level:
-        """Board texture at px_per_mm mapped to the gray levels, padded with background."""
+    def _rasterize(self, px_per_mm: float, back: bool = False) -> _Level:
+        """Board texture (``back``: the print on the back of a two-sided board, seen through it
+        in the front's texel frame) at px_per_mm mapped to the gray levels, padded with
+        background."""
         st = self.settings
-        cover = self.pattern.texture(px_per_mm).astype(np.float32) / 255.0
+        texture = self.pattern.back_texture if back else self.pattern.texture
+        cover = texture(px_per_mm).astype(np.float32) / 255.0
         gray = (st.black_level + (st.white_level - st.black_level) * cover) * 256.0
         # The last texel column/row may reach past the outline: blend in its background share.
         for axis, size in ((1, self._size[0]), (0, self._size[1])):
