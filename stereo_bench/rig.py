@@ -173,7 +173,7 @@ def _rotation_about(axis_index: int, angle: np.ndarray) -> np.ndarray:
 
 
 def session(cameras: list[Camera], board_centre: np.ndarray, board_radius: float,
-            cfg: TrajectoryConfig) -> tuple[Trajectory, np.ndarray]:
+            cfg: TrajectoryConfig, rng: np.random.Generator) -> tuple[Trajectory, np.ndarray]:
     """world_from_board poses of a studio calibration session, and per frame the index of the
     camera whose close-up it is (-1 for the walk). See the module notes and TrajectoryConfig.
 
@@ -183,7 +183,10 @@ def session(cameras: list[Camera], board_centre: np.ndarray, board_radius: float
     of that distance) at an incommensurate rate; its printed front faces the horizontal
     direction psi, which turns ``turns`` times, starting towards the first camera; it is tilted
     about its own x and y axes (up to ``tilt_deg``) and rolled (up to ``roll_deg``) at rates
-    incommensurate with the turn, so that each camera sees it from varied angles.
+    incommensurate with the turn, so that each camera sees it from varied angles. No operator
+    walks the same path twice: the phases of every oscillation and the start of the turn
+    (within half the angle between neighbouring cameras) are drawn from ``rng`` (the rig's
+    seed), so that trials of a clean studio differ too.
     """
     centre, up = volume_centre(cameras), world_up(cameras)
     try:
@@ -203,19 +206,21 @@ def session(cameras: list[Camera], board_centre: np.ndarray, board_radius: float
 
     s = np.linspace(0.0, 1.0, cfg.frames)
     tau = 2 * np.pi * s
-    height = 0.5 * (lo + hi) + 0.5 * (hi - lo) * np.sin(5.3 * tau)
+    phase = rng.uniform(0.0, 2 * np.pi, 6)
+    height = 0.5 * (lo + hi) + 0.5 * (hi - lo) * np.sin(5.3 * tau + phase[0])
     p = (centre - (centre @ up) * up + height[:, None] * up
-         + r * np.sin(3 * tau)[:, None] * e1 + r * np.sin(2 * tau + np.pi / 4)[:, None] * e2)
-    psi = cfg.turns * tau
+         + r * np.sin(3 * tau + phase[1])[:, None] * e1
+         + r * np.sin(2 * tau + phase[2])[:, None] * e2)
+    psi = cfg.turns * tau + rng.uniform(-0.5, 0.5) * np.pi / len(cameras)
     facing_dir = np.cos(psi)[:, None] * e1 + np.sin(psi)[:, None] * e2  # towards the viewers
     z = -facing_dir  # OpenCV boards: +z points away from a camera that sees the front
     y = np.broadcast_to(-up, z.shape)  # the board's y runs down, as in an upright camera
     x = np.cross(y, z)
     facing = np.stack([x, y, z], axis=-1)
     tilt = np.radians(cfg.tilt_deg)
-    R = (facing @ _rotation_about(0, tilt * np.sin(3.7 * tau))
-         @ _rotation_about(1, tilt * np.sin(2.3 * tau + 1.0))
-         @ _rotation_about(2, np.radians(cfg.roll_deg) * np.sin(1.7 * tau)))
+    R = (facing @ _rotation_about(0, tilt * np.sin(3.7 * tau + phase[3]))
+         @ _rotation_about(1, tilt * np.sin(2.3 * tau + phase[4]))
+         @ _rotation_about(2, np.radians(cfg.roll_deg) * np.sin(1.7 * tau + phase[5])))
     rvecs, tvecs = [matrix_to_rodrigues(R)], [p - R @ board_centre]
     closeup_of = [np.full(cfg.frames, -1)]
     if cfg.closeups:
@@ -269,7 +274,9 @@ class Rig:
         radius = 0.5 * np.hypot(*pattern.size_mm)
         if cfg.trajectory.kind == "session":
             try:
-                trajectory, closeup_of = session(cameras, centre, radius, cfg.trajectory)
+                # A stream of its own: the images' noise draws from [seed, camera, frame].
+                trajectory, closeup_of = session(cameras, centre, radius, cfg.trajectory,
+                                                 np.random.default_rng([cfg.seed, 1]))
             except ValueError as e:
                 raise ValueError(f"trajectory.kind session: {e}") from None
         else:

@@ -275,8 +275,11 @@ def test_two_sided_board_is_detected_from_behind_at_the_front_corners():
                     np.linalg.norm(det.points[ok] - gt.points[c, f][ok], axis=1))
     back, front = np.concatenate(errors[True]), np.concatenate(errors[False])
     assert len(errors[True]) >= 3 and len(errors[False]) >= 3
-    assert np.median(back) < 0.2 and back.max() < 1.0
-    assert np.median(back) < 2 * np.median(front) + 0.05
+    # Small far boards (20-40 px squares at 640x480) leave the front a few tenths of a pixel
+    # at worst; the back must do as well, not be off by a mirrored corner (a square, ~30 px).
+    assert np.median(back) < 0.2
+    assert np.percentile(back, 90) < 2 * np.percentile(front, 90) + 0.1
+    assert back.max() < 2 * front.max() + 0.5
 
 
 def test_two_sided_board_lets_opposite_cameras_see_it_together():
@@ -284,8 +287,10 @@ def test_two_sided_board_lets_opposite_cameras_see_it_together():
     d = studio_dict()
     d["pattern"]["two_sided"] = True
     two = Rig.from_config(parse_rig(d))
-    # cam1 and cam3 face each other across the ring.
-    for rig, together in ((one, False), (two, True)):
+    # cam1 and cam3 face each other across the ring: a one-sided board shows both its front
+    # only when it is off centre and nearly edge-on.
+    shared = []
+    for rig in (one, two):
         seen = rig.ground_truth().visible.sum(axis=2) >= 8
-        shared = int((seen[0] & seen[2]).sum())
-        assert (shared > 10) if together else (shared == 0), shared
+        shared.append(int((seen[0] & seen[2]).sum()))
+    assert shared[0] <= 2 and shared[1] >= 10, shared
