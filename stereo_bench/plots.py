@@ -43,8 +43,12 @@ def plot_metrics(agg: dict, path: Path) -> Path:
     cams = list(agg["detection"])
     panels = [("RPE_RMS px", "RPE_RMS (px)"), ("proj. diff mean px", "projection diff. (px)")]
     n = len(panels) * len(cams) + (1 if "rig" in agg else 0)
-    fig, axes = plt.subplots(1, n, figsize=(3.2 * n, 3.4), squeeze=False)
-    axes = axes[0]
+    cols = min(n, 6)  # a studio's many cameras wrap onto rows
+    rows = -(-n // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.4 * rows), squeeze=False)
+    axes = axes.ravel()
+    for ax in axes[n:]:
+        ax.set_visible(False)
     i = 0
     for cam in cams:
         rows = {m: agg["calibration"][m][cam] for m in agg["calibration"]}
