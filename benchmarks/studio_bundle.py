@@ -1,4 +1,5 @@
-"""The project's studio rig calibration beside pycolmap's bundle adjuster, from the same start.
+"""The project's studio rig calibration beside pycolmap's bundle adjuster and OpenCV's
+calibrateMultiview.
 
 One synthetic studio: 8 cameras (1920 x 1080, fx ~ 1370 px, i.e. ~70 deg across, each with its
 own distortion; every other one with k3, so COLMAP's FULL_OPENCV, the rest OPENCV) on a 4 m
@@ -8,13 +9,16 @@ camera sees a frame when it faces the board's front (within 70 deg) and all poin
 image. Exact projections plus Gaussian noise of ``--sigma`` px. Each camera's cam_from_board
 comes from cv2.solvePnP, as a calibration would give it; ``stereo.calibrate_rig`` and
 ``colmap_ref.colmap_rig_bundle`` then start from the same initial rig (``stereo.rig_start``)
-and fixed true intrinsics, and minimize the same cost.
+and fixed true intrinsics, and minimize the same cost. ``multiview_ref.opencv_multiview``
+(OpenCV >= 5, else its column reads n/a) takes the same observations and fixed intrinsics, but
+starts from its own initialization and minimizes its own robustly weighted cost (its notes).
 
 Prints per camera the error of its centre (mm, in camera 0's frame) and of its rotation (deg)
-against the truth for both solvers side by side, the RMS reprojection errors and the wall times
-(best of ``--repeat``; each includes its solver's initialization from the per-camera poses), with
-the versions they ran on. One BLAS thread (set before numpy loads)
-and one Ceres thread, unless ``--threads`` gives Ceres more; figures, not a pass/fail test.
+against the truth for the three solvers side by side, how far colmap's and OpenCV's rigs are
+from the project's, the RMS reprojection errors (through the project's camera model) and the
+wall times (best of ``--repeat``; each includes its solver's initialization), with the versions
+they ran on. One BLAS thread (set before numpy loads), one OpenCV thread, and one Ceres thread
+unless ``--threads`` gives Ceres more; figures, not a pass/fail test.
 
     python benchmarks/studio_bundle.py [--frames 200] [--sigma 0.3] [--seed 0] [--repeat 1]
 """
@@ -126,6 +130,9 @@ def main() -> None:
     except ImportError as e:
         raise SystemExit(f"{e} (pip install pycolmap)")
     from pycolmap._core import __ceres_version__ as ceres_version
+    opencv_multiview, opencv_missing = None, f"OpenCV {cv2.__version__} has no calibrateMultiview"
+    if hasattr(cv2, "calibrateMultiviewExtended"):  # OpenCV >= 5
+        from stereo_bench.multiview_ref import opencv_multiview
 
     rng = np.random.default_rng(args.seed)
     truth = studio(args.cameras, rng)
@@ -136,8 +143,10 @@ def main() -> None:
     per_frame = found.sum(0)
 
     print(f"pycolmap {pycolmap.__version__} ({pycolmap.COLMAP_build}; Ceres {ceres_version}), "
-          f"numpy {np.__version__}, scipy {scipy.__version__}, OpenCV {cv2.__version__}; "
-          f"BLAS threads {os.environ['OPENBLAS_NUM_THREADS']}, Ceres threads {args.threads}")
+          f"numpy {np.__version__}, scipy {scipy.__version__}, OpenCV {cv2.__version__} "
+          f"({'calibrateMultiview' if opencv_multiview else 'no calibrateMultiview'}); "
+          f"BLAS threads {os.environ['OPENBLAS_NUM_THREADS']}, OpenCV threads 1, Ceres threads "
+          f"{args.threads}")
     print(f"{args.cameras} cameras 1920x1080 on a 4 m ring, board {len(obj)} points, "
           f"{args.frames} frames, noise {args.sigma} px; frames per camera "
           f"{found.sum(1).tolist()}; frames seen by 2+ cameras {(per_frame >= 2).sum()}, "
@@ -151,40 +160,72 @@ def main() -> None:
                                  num_threads=args.threads)
 
     t_colmap, ref = best_of(colmap, args.repeat)
+    if opencv_multiview is not None:
+        t_cv, mv = best_of(lambda: opencv_multiview(intr, obj, img, found), args.repeat)
+    else:
+        t_cv, mv = None, None
+
+    def na(value, spec: str) -> str:
+        return "n/a" if value is None else format(value, spec)
 
     c_true = centres_in_cam0(truth)
-    e_ours, e_ref = rig_errors(ours.cameras, truth), rig_errors(ref.cameras, truth)
-    between = rig_errors(ref.cameras, ours.cameras)
-    d_ours = np.linalg.norm(centres_in_cam0(ours.cameras) - c_true, axis=-1)
-    d_ref = np.linalg.norm(centres_in_cam0(ref.cameras) - c_true, axis=-1)
-    d_between = np.linalg.norm(centres_in_cam0(ref.cameras) - centres_in_cam0(ours.cameras),
-                               axis=-1)
+    c_ours = centres_in_cam0(ours.cameras)
+    results = {"project": ours, "colmap": ref, "opencv": mv}
+    centre = {k: None if r is None else np.linalg.norm(centres_in_cam0(r.cameras) - c_true, axis=-1)
+              for k, r in results.items()}
+    rot = {k: None if r is None else rig_errors(r.cameras, truth)["rotation_deg"]
+           for k, r in results.items()}
+    d_centre = {k: None if results[k] is None else
+                np.linalg.norm(centres_in_cam0(results[k].cameras) - c_ours, axis=-1)
+                for k in ("colmap", "opencv")}
+    d_rot = {k: None if results[k] is None else
+             rig_errors(results[k].cameras, ours.cameras)["rotation_deg"]
+             for k in ("colmap", "opencv")}
+
+    def cell(d, k, c, spec):
+        return na(None if d[k] is None else d[k][c], spec)
+
+    names = ("project", "colmap", "opencv")
     print()
-    print(f"{'camera':<8}{'model':<13}{'centre error mm':>30}{'rotation error deg':>30}"
-          f"{'project - colmap':>28}")
-    print(f"{'':<21}{'project':>15}{'colmap':>15}{'project':>15}{'colmap':>15}"
-          f"{'centre mm':>14}{'rot. deg':>14}")
+    print(f"{'':<21}{'centre error mm':>33}{'rotation error deg':>33}"
+          f"{'colmap - project':>24}{'opencv - project':>24}")
+    print(f"{'camera':<8}{'model':<13}" + "".join(f"{n:>11}" for n in names) * 2
+          + f"{'centre mm':>12}{'rot. deg':>12}" * 2)
     for c, cam in enumerate(truth):
-        print(f"{cam.name:<8}{ref.log['camera_models'][c]:<13}{d_ours[c]:>15.4f}{d_ref[c]:>15.4f}"
-              f"{e_ours['rotation_deg'][c]:>15.5f}{e_ref['rotation_deg'][c]:>15.5f}"
-              f"{d_between[c]:>14.2e}{between['rotation_deg'][c]:>14.2e}")
+        print(f"{cam.name:<8}{ref.log['camera_models'][c]:<13}"
+              + "".join(f"{cell(centre, n, c, '.4f'):>11}" for n in names)
+              + "".join(f"{cell(rot, n, c, '.5f'):>11}" for n in names)
+              + "".join(f"{cell(d_centre, k, c, '.2e'):>12}{cell(d_rot, k, c, '.2e'):>12}"
+                        for k in ("colmap", "opencv")))
     print()
-    print(f"{'':<34}{'project':>18}{'colmap':>18}")
+    print(f"{'':<34}{'project':>18}{'colmap':>18}{'opencv':>18}")
     rows = [("initial RMS px", f"{ours.log['initial_rms_px']:.6f}",
-             f"{ref.log['initial_rms_px']:.6f}"),
-            ("final RMS px", f"{ours.rms_px:.12f}", f"{ref.rms_px:.12f}"),
-            ("observations", ours.log["n_observations"], ref.log["n_observations"]),
-            ("Jacobian evaluations", ours.iterations, ref.iterations),
-            ("wall time s (best of {})".format(args.repeat), f"{t_ours:.3f}", f"{t_colmap:.3f}"),
-            ("  of which the solver s", "", f"{ref.log['solve_time_s']:.3f}")]
-    for name, a, b in rows:
-        print(f"{name:<34}{a!s:>18}{b!s:>18}")
-    print(f"RMS relative difference colmap/project - 1: {ref.rms_px / ours.rms_px - 1:.2e}")
+             f"{ref.log['initial_rms_px']:.6f}", "own start" if mv else "n/a"),
+            ("final RMS px", f"{ours.rms_px:.12f}", f"{ref.rms_px:.12f}",
+             na(mv and mv.rms_px, ".12f")),
+            ("observations", ours.log["n_observations"], ref.log["n_observations"],
+             na(mv and mv.log["n_observations"], "d")),
+            ("Jacobian evaluations", ours.iterations, ref.iterations,
+             "not reported" if mv else "n/a"),
+            ("wall time s (best of {})".format(args.repeat), f"{t_ours:.3f}", f"{t_colmap:.3f}",
+             na(t_cv, ".3f")),
+            ("  of which the solver s", "", f"{ref.log['solve_time_s']:.3f}",
+             na(mv and mv.log["opencv_time_s"], ".3f"))]
+    for name, a, b, c in rows:
+        print(f"{name:<34}{a!s:>18}{b!s:>18}{c!s:>18}")
+    print(f"RMS relative difference colmap/project - 1: {ref.rms_px / ours.rms_px - 1:.2e}"
+          + ("" if mv is None else f", opencv/project - 1: {mv.rms_px / ours.rms_px - 1:.2e}"))
     print(f"project: {ours.log['message']}")
     print(f"colmap:  {ref.log['brief_report']} ({ref.log['message'].rstrip('.')}; linear solver "
           f"{ref.log['linear_solver']}, {ref.log['n_images']} images, "
           f"{ref.log['dropped_observations']} observations dropped)")
-
+    if mv is None:
+        print(f"opencv:  n/a ({opencv_missing})")
+    else:
+        pairs = ", ".join(f"{a}-{b}" for a, b in mv.log["initialization_pairs"])
+        print(f"opencv:  its own RMS {mv.log['opencv_rms_px']:.12f} px (its float32 points); "
+              f"{mv.log['n_views']} views; left out {mv.log['left_out']}; initialization "
+              f"pairs {pairs}")
 
 if __name__ == "__main__":
     main()
