@@ -43,8 +43,8 @@ from .calibrate.base import MIN_POINTS_PER_VIEW
 from .calibrate.homography import fit_homography
 from .calibrate.zhang import extrinsics_from_homography
 from .camera import (DIST_NAMES, INTRINSIC_NAMES, Camera, compose, geodesic_distance, invert,
-                     matrix_to_rodrigues, nearest_rotation, project_with_jacobians,
-                     rodrigues_to_matrix, rotate_jacobian)
+                     matrix_to_rodrigues, nearest_rotation, project_points,
+                     project_with_jacobians, rodrigues_to_matrix, rotate_jacobian)
 
 MIN_OUTLIER_DEG = 0.1  # rotation-averaging inlier radius never goes below this
 
@@ -221,6 +221,49 @@ class _RigProblem:
         return float(np.sqrt(np.mean(r**2) * 2)), np.array(per)
 
 
+def covisibility(seen: np.ndarray) -> np.ndarray:
+    """(C, C) int: frames each pair of cameras saw together (diagonal: frames each saw), from
+    seen (C, F) bool."""
+    seen = np.asarray(seen, dtype=bool)
+    return (seen[:, None, :] & seen[None, :, :]).sum(-1)
+
+
+def unreachable(seen: np.ndarray) -> list[int]:
+    """Indices of the cameras not joined to camera 0 through frames two cameras saw together
+    (seen (C, F) bool): a rig with any cannot be calibrated as one."""
+    linked = covisibility(seen) > 0
+    joined, todo = {0}, [0]
+    while todo:
+        for j in np.flatnonzero(linked[todo.pop()]):
+            if int(j) not in joined:
+                joined.add(int(j))
+                todo.append(int(j))
+    return [c for c in range(len(linked)) if c not in joined]
+
+
+def reprojection_rms(cameras: Sequence[Camera], object_points, image_points, board_rvecs,
+                     board_tvecs, observed) -> tuple[float, np.ndarray]:
+    """RMS reprojection error (px per point) of a calibrated rig through the camera core, over
+    all observations and per camera (C,): cameras with cam_from_world = cam_from_cam0,
+    board_rvecs/tvecs (F, 3) cam0_from_board, observed (C, F, N) bool the observations to count
+    in image_points (C, F, N, 2). A camera with none gets NaN."""
+    obj = np.asarray(object_points, dtype=np.float64)
+    R0b = rodrigues_to_matrix(np.where(np.isfinite(board_rvecs), board_rvecs, 0.0))
+    t0b = np.where(np.isfinite(board_tvecs), board_tvecs, 0.0)
+    per, squares = [], []
+    for c, cam in enumerate(cameras):
+        e = []
+        for f in np.flatnonzero(np.asarray(observed[c]).any(-1)):
+            Rc, tc = compose(cam.R, cam.tvec, R0b[f], t0b[f])
+            pts = observed[c, f]
+            uv = project_points(obj[pts], cam.intrinsics, cam.dist, matrix_to_rodrigues(Rc), tc)
+            e.append(np.sum((uv - image_points[c, f, pts]) ** 2, axis=-1))
+        e = np.concatenate(e) if e else np.zeros(0)
+        squares.append(e)
+        per.append(np.sqrt(np.mean(e)) if len(e) else np.nan)
+    return float(np.sqrt(np.mean(np.concatenate(squares)))), np.array(per)
+
+
 @dataclass(frozen=True, eq=False)
 class RigStart:
     """Where a rig's bundle adjustment starts (``rig_start``).
@@ -361,7 +404,7 @@ def calibrate_rig(
              "loss_scale_px": loss_scale_px,
              "refined_intrinsics": {n: [p for p, f in zip(MODEL_PARAMETERS, m) if f]
                                     for n, m in zip(names, free) if m.any()},
-             "covisibility": (seen[:, None, :] & seen[None, :, :]).sum(-1),
+             "covisibility": covisibility(seen),
              "initialization": start.log})
 
 
