@@ -26,7 +26,6 @@ MAX_IMAGE_PIXELS = 64_000_000
 MAX_CAMERAS = 64
 MAX_FRAMES = 10_000
 MAX_PATTERN_COUNT = 100  # squares, rows or columns of a board
-MAX_MARKER_ID = 1000  # ArUco dictionaries hold at most 1000 markers
 MAX_BOARD_MM = 1200.0  # the board's outline, per side (its texture is written at 10 px/mm)
 MAX_BLUR_PX = 50.0
 MAX_FILE_BYTES = 1 << 20
@@ -206,9 +205,9 @@ def _check_override(field: dataclasses.Field, value):
     elif field.type in ("int", int):
         if not isinstance(value, int) or isinstance(value, bool):
             raise ValueError(f"pattern.{field.name}: expected an integer, got {value!r}")
-        # Counts of squares, rows or columns, unless the field says its least value (an id).
-        least, most = ((field.metadata["min"], MAX_MARKER_ID) if "min" in field.metadata
-                       else (2, MAX_PATTERN_COUNT))
+        # Counts of squares, rows or columns, unless the field gives its own bounds (an id).
+        least = field.metadata.get("min", 2)
+        most = field.metadata.get("max", MAX_PATTERN_COUNT)
         if not least <= value <= most:
             raise ValueError(f"pattern.{field.name}: expected {least}..{most}, got {value}")
     elif field.type in ("float", float):
@@ -313,9 +312,10 @@ class CalibrationConfig(_Strict):
     editing it reuses the images and the detections).
 
     ``intrinsics_views``: the views each camera's intrinsics come from: ``all``, only the
-    ``closeups`` of a session, or only the ``session`` (walk) frames. The rig stage always uses
-    every frame two cameras share. ``refine_intrinsics``: let the rig's bundle adjustment also
-    move each camera's intrinsics (the parameters its method estimates). ``loss``: the robust
+    ``closeups`` of a session, or only the ``session`` (walk) frames. The rig stage uses every
+    frame two cameras share, and with ``refine_intrinsics`` (the rig's bundle adjustment also
+    moves each camera's intrinsics, the parameters its method estimates) every frame any camera
+    saw, since each constrains that camera's intrinsics. ``loss``: the robust
     loss of the rig's bundle adjustment (scipy's names; ``linear`` is plain least squares, the
     cost cv2.stereoCalibrate minimizes), with residuals scaled by ``loss_scale_px``."""
 
@@ -369,8 +369,9 @@ class RigConfig(_Strict):
                 try:
                     cams.append(CameraConfig.model_validate(entry))
                 except ValidationError as e:
-                    raise ValueError(f"studio: camera {entry['name']!r}: "
-                                     + describe(e, "", "camera").split("\n", 1)[1].strip())
+                    lines = describe(e, "", "camera").split("\n")[1:]
+                    raise ValueError(f"studio: camera {entry['name']!r}: " + "; ".join(
+                        line.strip().removeprefix("(top level): ") for line in lines))
             # Frozen model: the expansion replaces the studio once, at validation.
             object.__setattr__(self, "cameras", cams)
             object.__setattr__(self, "studio", None)
@@ -387,6 +388,13 @@ class RigConfig(_Strict):
         if frames > MAX_FRAMES:
             raise ValueError(f"trajectory.closeups: {frames} frames in all; expected at most "
                              f"{MAX_FRAMES}")
+        views, tr = self.calibration.intrinsics_views, self.trajectory
+        if views != "all" and tr.kind != "session":
+            raise ValueError(f"calibration.intrinsics_views: {views!r} names frames of a "
+                             f"session; this trajectory is a {tr.kind} (use 'all')")
+        if views == "closeups" and tr.closeups == 0:
+            raise ValueError("calibration.intrinsics_views: 'closeups' needs close-up frames; "
+                             "set trajectory.closeups above 0")
         return self
 
     def cameras_true(self) -> list[Camera]:

@@ -119,7 +119,9 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None) -> "Dataset":
     for name, a in arrays.items():
         write_npy(paths.array(name), a)
     write_png(paths.texture, rig.pattern.texture(TEXTURE_PX_PER_MM))
-    resolved = cfg.model_dump(mode="json")
+    # The calibration settings are not part of the rendered data (a run may change them and
+    # reuse the images): the dataset leaves them out, and the stages that use them record them.
+    resolved = cfg.model_dump(mode="json", exclude={"calibration"})
     write_text(paths.config, yaml.safe_dump(resolved, sort_keys=False))
     write_json(paths.cameras, [c.to_dict() for c in cams])
     # Timing lives outside the manifest so that the same config and seed give identical files.

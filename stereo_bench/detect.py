@@ -423,9 +423,10 @@ def _detect_charuco(gray, search: _SearchImage, pattern: Charuco) -> Detection:
     # A two-sided board: one side faces the camera; its marker ids tell which.
     side = pattern
     if pattern.two_sided:
-        first_back = pattern.back().marker_id_offset
-        if (marker_ids >= first_back).sum() > (marker_ids < first_back).sum():
-            side = pattern.back()
+        back = pattern.back()
+        if np.isin(marker_ids, back.marker_ids()).sum() > np.isin(marker_ids,
+                                                                   pattern.marker_ids()).sum():
+            side = back
             board = side.cv_board()
     corners, ids, _, _ = cv2.aruco.CharucoDetector(board).detectBoard(
         gray, markerCorners=markers, markerIds=marker_ids)

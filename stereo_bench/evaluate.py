@@ -34,25 +34,32 @@ MIN_POINTS = 8  # fewer detected corners than this hardly constrain a view
 MIN_SPREAD = 0.2  # the board points' minor extent relative to their major one
 
 
+def unusable_view(object_points: np.ndarray) -> str | None:
+    """Why the detected board points (K, 3) of one view cannot start a calibration or a pose,
+    or None: too few points, or points nearly on a line (a partial ChArUco view of one row),
+    which leave the view's homography, and every closed-form initialization built on it,
+    undetermined."""
+    if len(object_points) < MIN_POINTS:
+        return f"{len(object_points)} points, need {MIN_POINTS}"
+    sv = np.linalg.svd(object_points[:, :2] - object_points[:, :2].mean(0), compute_uv=False)
+    if sv[1] < MIN_SPREAD * sv[0]:
+        return f"points nearly collinear (spread {sv[1] / sv[0]:.2f})"
+    return None
+
+
 def observations(det: CameraDetections, object_points: np.ndarray,
                  camera: Camera, frames: np.ndarray | None = None,
                  ) -> tuple[Observations, dict[int, str]]:
     """The found views of one camera, each with its detected (finite) points, and the found
-    views left out with the reason: too few points, or points nearly on a line (a partial
-    ChArUco view of one row), which leave a view's homography, and so every closed-form
-    initialization built on it, undetermined. ``frames`` (F,) bool: the frames the views may
-    come from (default: all)."""
+    views left out with the reason (``unusable_view``). ``frames`` (F,) bool: the frames the
+    views may come from (default: all)."""
     obj, img, ids, dropped = [], [], [], {}
     allowed = det.found if frames is None else det.found & frames
     for f in np.flatnonzero(allowed):
         ok = np.isfinite(det.points[f]).all(axis=1)
-        if ok.sum() < MIN_POINTS:
-            dropped[int(f)] = f"{int(ok.sum())} points, need {MIN_POINTS}"
-            continue
-        sv = np.linalg.svd(object_points[ok, :2] - object_points[ok, :2].mean(0),
-                           compute_uv=False)
-        if sv[1] < MIN_SPREAD * sv[0]:
-            dropped[int(f)] = f"points nearly collinear (spread {sv[1] / sv[0]:.2f})"
+        reason = unusable_view(object_points[ok])
+        if reason:
+            dropped[int(f)] = reason
             continue
         obj.append(object_points[ok])
         img.append(det.points[f, ok])
@@ -127,8 +134,9 @@ def save_calibration(result: CalibrationResult, obs: Observations, trial: TrialP
 
 def metrics_fingerprint(detections_fp: str, methods: list[str],
                         calibration: CalibrationConfig) -> str:
-    return fingerprint("metrics", detections_fp, list(methods),
-                       calibration.model_dump(mode="json"))
+    """What the per-camera calibrations depend on: the detections, the methods and the views
+    the intrinsics come from (the rig stage's settings are in ``pipeline.rig_fingerprint``)."""
+    return fingerprint("metrics", detections_fp, list(methods), calibration.intrinsics_views)
 
 
 def intrinsics_frames(ds: Dataset, camera: int, calibration: CalibrationConfig) -> np.ndarray:
@@ -142,13 +150,13 @@ def intrinsics_frames(ds: Dataset, camera: int, calibration: CalibrationConfig) 
     return np.ones(ds.frames, bool)
 
 
-def evaluate_dataset(ds: Dataset, methods: list[str], trial: TrialPaths, progress=None,
-                     notes: Notes | None = None,
-                     calibration: CalibrationConfig | None = None) -> dict:
+def evaluate_dataset(ds: Dataset, methods: list[str], trial: TrialPaths,
+                     calibration: CalibrationConfig, progress=None,
+                     notes: Notes | None = None) -> dict:
     """Detect, calibrate with each method, score; write everything under ``trial``.
 
-    ``calibration``: the settings of the calibration stage (default: the dataset's own; a run
-    passes its rig file's, which may have changed since the images were rendered).
+    ``calibration``: the settings of the calibration stage, from the rig file of the run (they
+    may have changed since the images were rendered; the dataset does not hold them).
 
     Returns the dict written to ``trial.metrics``: ``detection[camera]`` (rate and error
     against the truth), ``calibration[method][camera]`` (see ``score``, or ``{"error": ...}``),
@@ -156,7 +164,6 @@ def evaluate_dataset(ds: Dataset, methods: list[str], trial: TrialPaths, progres
     """
     for m in methods:  # fail early on a typo, before any work
         get_calibrator(m)
-    calibration = calibration or ds.config.calibration
     dets, detect_s, det_fp = load_or_detect(ds, trial, progress, notes)
     # Estimates of an earlier calibration must not outlive it: a camera that fails now would
     # otherwise leave its old estimate where the plots and the rig stage look for it.
@@ -167,6 +174,7 @@ def evaluate_dataset(ds: Dataset, methods: list[str], trial: TrialPaths, progres
     rig = ds.rig()
     inside = ds.root.resolve().is_relative_to(trial.root.resolve())
     report = {"fingerprint": metrics_fingerprint(det_fp, methods, calibration),
+              "intrinsics_views": calibration.intrinsics_views,
               # Relative inside the trial, so that two runs into different folders agree.
               "dataset": (ds.root.resolve().relative_to(trial.root.resolve()).as_posix()
                           if inside else str(ds.root)),
@@ -180,7 +188,8 @@ def evaluate_dataset(ds: Dataset, methods: list[str], trial: TrialPaths, progres
         report["detection"][cam.name] = detection_errors(det, gt.points[c], gt.visible[c])
         truth = cam.with_params(rvec=np.zeros(3), tvec=np.zeros(3))
         try:
-            obs, dropped = observations(det, ds.object_points, cam, intrinsics_frames(ds, c, calibration))
+            obs, dropped = observations(det, ds.object_points, cam,
+                                        intrinsics_frames(ds, c, calibration))
             report["detection"][cam.name]["views_left_out"] = dropped
         except ValueError as e:
             for m in methods:

@@ -362,7 +362,8 @@ class Charuco(Pattern):
     marker_mm: float = 11.0
     dictionary: str = "DICT_7X7_250"
     two_sided: bool = False
-    marker_id_offset: int = dataclasses.field(default=0, metadata={"min": 0})
+    # ArUco's dictionaries hold at most 1000 markers.
+    marker_id_offset: int = dataclasses.field(default=0, metadata={"min": 0, "max": 999})
 
     def _validate(self) -> None:
         for field in ("squares_x", "squares_y"):
@@ -381,6 +382,10 @@ class Charuco(Pattern):
 
     def _marker_count(self) -> int:
         return self.squares_x * self.squares_y // 2
+
+    def marker_ids(self) -> np.ndarray:
+        """(M,) int32: the ids of the board's markers, in row-major order of the white squares."""
+        return np.arange(self._marker_count(), dtype=np.int32) + self.marker_id_offset
 
     def back(self) -> "Charuco":
         """The board printed on the back of a two-sided board, in its own frame (as a camera
@@ -411,10 +416,9 @@ class Charuco(Pattern):
 
     def cv_board(self) -> cv2.aruco.CharucoBoard:
         """The matching OpenCV board, for CharucoDetector and matchImagePoints."""
-        ids = np.arange(self._marker_count(), dtype=np.int32) + self.marker_id_offset
         board = cv2.aruco.CharucoBoard(
             (self.squares_x, self.squares_y), self.square_mm, self.marker_mm,
-            self.aruco_dictionary(), ids
+            self.aruco_dictionary(), self.marker_ids()
         )
         board.setLegacyPattern(False)
         return board

@@ -24,7 +24,8 @@ from .camera import Camera
 from .config import CalibrationConfig, RigConfig
 from .dataset import Dataset, dataset_fingerprint, write_dataset
 from .detect import CameraDetections
-from .evaluate import MIN_POINTS, detections_fingerprint, evaluate_dataset, metrics_fingerprint
+from .evaluate import (detections_fingerprint, evaluate_dataset, metrics_fingerprint,
+                       unusable_view)
 from .rig import volume_centre
 from .rundir import (Notes, RunPaths, TrialPaths, UnreadableFileError, fingerprint, locked,
                      read_json, reusable, strict, write_json)
@@ -47,7 +48,7 @@ def _board_poses(ds: Dataset, trial: TrialPaths, method: str, cam: Camera,
         r[z["view_ids"]], t[z["view_ids"]] = z["rvecs"], z["tvecs"]
     for f in np.flatnonzero(det.found & ~np.isfinite(r).all(axis=1)):
         ok = np.isfinite(det.points[f]).all(axis=1)
-        if ok.sum() < MIN_POINTS:
+        if unusable_view(ds.object_points[ok]):
             continue
         try:
             r[f], t[f] = planar_pose(cam, ds.object_points[ok], det.points[f, ok])
@@ -133,6 +134,10 @@ def rig_calibration(ds: Dataset, trial: TrialPaths, method: str,
                           for i, c in enumerate(truth)},
         "log": rig.log,
     }
+    if calibration.refine_intrinsics and not params:
+        entry["note"] = (f"{method}'s model is not a subset of OpenCV's: its intrinsics stay as "
+                         f"estimated in the rig's bundle adjustment (calibration."
+                         f"refine_intrinsics)")
     try:
         aligned = aligned_rig_errors(rig.cameras, truth)
         entry["aligned"] = {"scale": aligned["scale"], "cameras": {
@@ -144,9 +149,18 @@ def rig_calibration(ds: Dataset, trial: TrialPaths, method: str,
     return entry
 
 
-def rig_fingerprint(metrics_fp: str, method: str) -> str:
-    """What a rig calibration depends on: the calibrations it starts from, and its method."""
-    return fingerprint("rig", metrics_fp, method)
+def rig_settings(calibration: CalibrationConfig) -> dict:
+    """The settings the rig stage reads (the rest of ``calibration`` is the calibration
+    stage's)."""
+    return calibration.model_dump(mode="json", include={"refine_intrinsics", "loss",
+                                                        "loss_scale_px"})
+
+
+def rig_fingerprint(metrics_fp: str, method: str, settings: dict | None = None) -> str:
+    """What a rig calibration depends on: the calibrations it starts from, its method and the
+    rig stage's settings (``rig_settings``; None: the defaults)."""
+    return fingerprint("rig", metrics_fp, method,
+                       settings if settings is not None else rig_settings(CalibrationConfig()))
 
 
 def _dataset(cfg: RigConfig, trial: TrialPaths, dataset_dir: Path | None, progress,
@@ -183,11 +197,12 @@ def run_trial(cfg: RigConfig, out: Path, methods: list[str], progress=None,
     expected = metrics_fingerprint(detections_fingerprint(ds), methods, cfg.calibration)
     report = reusable(trial.metrics, expected, notes, "calibration")
     if report is None:
-        report = evaluate_dataset(ds, methods, trial, progress, notes, cfg.calibration)
+        report = evaluate_dataset(ds, methods, trial, cfg.calibration, progress, notes)
     report["rig"] = {}
     if with_rig and len(ds.cameras) >= 2:
         for m in methods:
-            rig_fp = rig_fingerprint(report["fingerprint"], m)
+            settings = rig_settings(cfg.calibration)
+            rig_fp = rig_fingerprint(report["fingerprint"], m, settings)
             entry = reusable(trial.rig(m), rig_fp, notes, f"rig calibration of {m}")
             if entry is not None:
                 report["rig"][m] = entry
@@ -201,6 +216,7 @@ def run_trial(cfg: RigConfig, out: Path, methods: list[str], progress=None,
             except (ValueError, np.linalg.LinAlgError, RuntimeError, OSError) as e:
                 entry = {"method": m, "error": f"{type(e).__name__}: {e}"}
             entry["fingerprint"] = rig_fp
+            entry["settings"] = settings
             entry["wall_time_s"] = time.perf_counter() - t0
             write_json(trial.rig(m), entry)
             report["rig"][m] = strict(entry)
@@ -277,8 +293,10 @@ def load_run(run_dir) -> list[Trial]:
             entry = read_json(path)
             if not isinstance(entry, dict) or "method" not in entry:
                 raise UnreadableFileError(f"{path}: not a rig calibration written by stereo-bench")
+            # Made from the trial's current calibrations, with the settings it records.
             if entry.get("fingerprint") != rig_fingerprint(metrics.get("fingerprint"),
-                                                           entry["method"]):
+                                                           entry["method"],
+                                                           entry.get("settings")):
                 continue
             rigs[entry["method"]] = entry["error"] if "error" in entry else [
                 Camera.from_dict(d, str(path)) for d in entry["cameras"]]

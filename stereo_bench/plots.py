@@ -25,6 +25,7 @@ import numpy as np  # noqa: E402
 from .camera import Camera, project_points  # noqa: E402
 from .dataset import Dataset  # noqa: E402
 from .detect import CameraDetections  # noqa: E402
+from .evaluate import MIN_POINTS  # noqa: E402
 from .metrics import projection_difference_map  # noqa: E402
 from .rig import ground_axes, world_up  # noqa: E402
 from .rundir import RunPaths, TrialPaths  # noqa: E402
@@ -44,8 +45,8 @@ def plot_metrics(agg: dict, path: Path) -> Path:
     panels = [("RPE_RMS px", "RPE_RMS (px)"), ("proj. diff mean px", "projection diff. (px)")]
     n = len(panels) * len(cams) + (1 if "rig" in agg else 0)
     cols = min(n, 6)  # a studio's many cameras wrap onto rows
-    rows = -(-n // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.4 * rows), squeeze=False)
+    lines = -(-n // cols)
+    fig, axes = plt.subplots(lines, cols, figsize=(3.2 * cols, 3.4 * lines), squeeze=False)
     axes = axes.ravel()
     for ax in axes[n:]:
         ax.set_visible(False)
@@ -104,7 +105,11 @@ def _world_axes(cameras: list[Camera]) -> tuple[np.ndarray, list[str]]:
     """A plotting basis (3, 3) of rows (horizontal 1, horizontal 2, up) and their labels: up
     is the cameras' (rig.world_up), so a pair (world y down) and a studio (z up) both stand
     upright; a basis vector along a world axis is named after it."""
-    up = world_up(cameras)
+    try:
+        up = world_up(cameras)
+    except ValueError:  # cameras rolled against each other: the world's own axes, y down
+        return np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]]), ["x (mm)", "z (mm)",
+                                                                     "-y (mm)"]
     basis = np.stack([*ground_axes(up), up])
     labels = []
     for v in basis:
@@ -163,7 +168,7 @@ def plot_studio(trial: TrialPaths, ds: Dataset, path: Path) -> Path:
     centre = rig.board_points_world().mean(1) @ basis.T
     walk = rig.closeup_of < 0
     dets = [CameraDetections.load(trial.detection(c.name)) for c in ds.cameras]
-    in_view = ds.ground_truth.visible.sum(axis=2) >= 8
+    in_view = ds.ground_truth.visible.sum(axis=2) >= MIN_POINTS
     detected = np.stack([d.found for d in dets])
     fig, (top, raster) = plt.subplots(1, 2, figsize=(12, 4.8),
                                       gridspec_kw={"width_ratios": [1, 1.6]})

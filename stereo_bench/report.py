@@ -108,9 +108,13 @@ def aggregate(trials: list[dict]) -> dict:
             entries = [t["rig"][m] for t in trials]
             row = {title: summarize([_get(e, path) for e in entries]) for title, path in RIG_COLUMNS}
             row["failures"] = [e["error"] for e in entries if "error" in e]
+            row["notes"] = sorted({e["note"] for e in entries if "note" in e})
             agg["rig"][m] = row
         if len(first["cameras"]) > 2:
             agg.update(_studio(trials))
+    rig_entries = [e for e in first.get("rig", {}).values() if "settings" in e]
+    agg["calibration_settings"] = {"intrinsics_views": first.get("intrinsics_views", "all"),
+                                   **(rig_entries[0]["settings"] if rig_entries else {})}
     agg["warnings"] = sorted({w for t in trials for w in t.get("warnings", [])})
     agg["notes"] = [n for t in trials for n in t.get("notes", [])]
     agg["timing"] = {k: summarize([t.get("timing", {}).get(k, math.nan) for t in trials])
@@ -180,8 +184,9 @@ def _studio_markdown(agg: dict) -> list[str]:
     cov = agg.get("covisibility")
     if cov:
         names = cov["cameras"]
-        lines += ["", "Frames in which each pair of cameras detected the board together "
-                  "(diagonal: frames each camera detected it; first trial):", "",
+        lines += ["", "Frames the rig calibration has of each pair of cameras together: the "
+                  "board detected by both with at least 4 points and a pose through each "
+                  "camera's estimate (diagonal: per camera; first trial, first method):", "",
                   "| | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
         for name, row in zip(names, cov["frames"]):
             lines.append(f"| {name} | " + " | ".join(str(v) for v in row) + " |")
@@ -198,7 +203,16 @@ def fmt(s: dict, digits: int = 3) -> str:
 
 def markdown(agg: dict, title: str) -> str:
     """Detection table plus the calibration table (rows: camera x method)."""
-    lines = [f"# {title}", "", f"Mean ± std over {agg['trials']} trial(s).", "",
+    settings = agg.get("calibration_settings", {})
+    said = f"intrinsics from {settings.get('intrinsics_views', 'all')} views"
+    if "loss" in settings:
+        said += (f"; rig bundle adjustment: {settings['loss']} loss"
+                 + (f" (scale {settings['loss_scale_px']:g} px)" if settings["loss"] != "linear"
+                    else "")
+                 + (", intrinsics refined" if settings["refine_intrinsics"] else
+                    ", intrinsics fixed"))
+    lines = [f"# {title}", "", f"Mean ± std over {agg['trials']} trial(s). Calibration: {said}.",
+             "",
              "## Detection against ground truth", "",
              "| camera | " + " | ".join(t for t, _ in DETECTION_COLUMNS) + " |",
              "|---|" + "---|" * len(DETECTION_COLUMNS)]
@@ -236,6 +250,9 @@ def markdown(agg: dict, title: str) -> str:
         for m, row in agg["rig"].items():
             lines.append(f"| {m} | " + " | ".join(fmt(row[t]) for t, _ in RIG_COLUMNS) + " |")
             failures += [f"- rig / {m}: {msg}" for msg in row["failures"]]
+        rig_notes = [f"- {m}: {n}" for m, row in agg["rig"].items() for n in row.get("notes", [])]
+        if rig_notes:
+            lines += [""] + rig_notes
         if agg.get("rig_cameras"):
             lines += _studio_markdown(agg)
     if failures:

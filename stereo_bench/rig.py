@@ -127,12 +127,24 @@ def conical_spring(
 
 
 def world_up(cameras: list[Camera]) -> np.ndarray:
-    """The world's up direction seen by upright cameras: the mean of their image -y axes."""
-    up = -np.stack([c.R[1] for c in cameras]).mean(0)
-    if np.linalg.norm(up) < 0.3:
-        raise ValueError("cameras: their image 'up' directions disagree (e.g. cameras rolled "
-                         "by 180 degrees); a session needs upright cameras to know the vertical")
-    return up / np.linalg.norm(up)
+    """The world's up direction seen by upright cameras (unit, (3,)).
+
+    An upright camera's image x axis is horizontal however far it looks down, so up is the
+    normal of the plane the cameras' x axes span (the least eigenvector of sum x x^T), on the
+    side of their image -y axes. The mean of the -y axes alone tilts towards where cameras
+    that look down look (7 degrees on a half ring). When the x axes span no plane (parallel,
+    as for a pair looking one way), the mean -y axis is all there is.
+    """
+    x = np.stack([c.R[0] for c in cameras])
+    mean_up = -np.stack([c.R[1] for c in cameras]).mean(0)
+    if np.linalg.norm(mean_up) < 0.3:
+        raise ValueError("cameras: their image 'up' directions disagree (e.g. a camera rolled "
+                         "by 180 degrees), so the vertical is unknown; give every camera the "
+                         "same up")
+    w, v = np.linalg.eigh(x.T @ x)
+    if w[1] - w[0] < 1e-3 * len(cameras):
+        return mean_up / np.linalg.norm(mean_up)
+    return v[:, 0] * np.sign(v[:, 0] @ mean_up)
 
 
 def ground_axes(up: np.ndarray, towards: np.ndarray | None = None
@@ -160,6 +172,11 @@ def volume_centre(cameras: list[Camera]) -> np.ndarray:
         b += P @ c.center
     w = np.linalg.eigvalsh(A)
     if w[0] < 0.05 * len(cameras):
+        axes = np.stack([c.R[2] for c in cameras])
+        if (axes @ axes[0]).min() < 0:  # some look back along the same line
+            raise ValueError("cameras: their optical axes lie (nearly) on one line, facing each "
+                             "other, so no single point is nearest to them: put the cameras at "
+                             "different heights or add a camera off that line")
         raise ValueError("cameras: their optical axes are nearly parallel, so they do not meet "
                          "around a capture volume; a session trajectory needs cameras that "
                          "surround it (use trajectory.kind: spring for a rig that looks one way)")
@@ -274,9 +291,10 @@ class Rig:
         radius = 0.5 * np.hypot(*pattern.size_mm)
         if cfg.trajectory.kind == "session":
             try:
-                # A stream of its own: the images' noise draws from [seed, camera, frame].
-                trajectory, closeup_of = session(cameras, centre, radius, cfg.trajectory,
-                                                 np.random.default_rng([cfg.seed, 1]))
+                # A stream of its own: a spawn key no image's noise ([seed, camera, frame],
+                # whose shorter forms numpy pads with zeros) can equal.
+                rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(1,)))
+                trajectory, closeup_of = session(cameras, centre, radius, cfg.trajectory, rng)
             except ValueError as e:
                 raise ValueError(f"trajectory.kind session: {e}") from None
         else:

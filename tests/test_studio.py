@@ -107,7 +107,8 @@ def test_session_shows_each_camera_the_board_part_of_the_time(path):
     tr = cfg.trajectory
     C = len(rig.cameras)
     assert len(rig.trajectory) == tr.frames + C * tr.closeups
-    assert np.array_equal(rig.closeup_of, np.repeat(np.arange(-1, C), [tr.frames] + [tr.closeups] * C))
+    assert np.array_equal(rig.closeup_of,
+                          np.repeat(np.arange(-1, C), [tr.frames] + [tr.closeups] * C))
     gt = rig.ground_truth()
     seen = gt.visible.sum(axis=2) >= 8  # (C, F)
     walk = rig.closeup_of < 0
@@ -288,12 +289,13 @@ def test_two_sided_board_lets_opposite_cameras_see_it_together():
     d["pattern"]["two_sided"] = True
     two = Rig.from_config(parse_rig(d))
     # cam1 and cam3 face each other across the ring: a one-sided board shows both its front
-    # only when it is off centre and nearly edge-on.
+    # only when it is off centre and nearly edge-on (geometry counts those grazing views;
+    # no detector would find them).
     shared = []
     for rig in (one, two):
         seen = rig.ground_truth().visible.sum(axis=2) >= 8
         shared.append(int((seen[0] & seen[2]).sum()))
-    assert shared[0] <= 2 and shared[1] >= 10, shared
+    assert shared[1] >= 5 * max(shared[0], 2), shared
 
 
 def test_studio_run_end_to_end(tmp_path):
@@ -320,7 +322,8 @@ def test_studio_run_end_to_end(tmp_path):
     assert main([str(rig), "--out", str(out), "--methods", "zhang,opencv"]) == 0
     report = (out / "report.md").read_text()
     assert "## Per camera of the rig" in report and "RMSE_cal (mm) by distance" in report
-    assert "Frames in which each pair of cameras detected the board together" in report
+    assert "Frames the rig calibration has of each pair of cameras together" in report
+    assert "rig bundle adjustment: soft_l1 loss (scale 1 px), intrinsics refined" in report
     assert (out / "plots" / "studio.png").stat().st_size > 10_000
     entry = json.loads((out / "trials" / "seed_0" / "rig" / "zhang.json").read_text())
     assert entry["log"]["refined_intrinsics"]["cam1"][:4] == ["fx", "fy", "cx", "cy"]
@@ -333,3 +336,35 @@ def test_studio_run_end_to_end(tmp_path):
     assert max(aligned) < 15 and max(fixed) < 80 and entry["rms_px"] < 0.2
     cov = np.array(entry["log"]["covisibility"])
     assert cov.shape == (6, 6) and (np.diag(cov) > 0).all()
+
+
+@pytest.mark.parametrize("path", STUDIOS, ids=[p.stem for p in STUDIOS])
+def test_the_vertical_is_found_even_on_a_half_ring(path):
+    """Cameras that look down tilt their image up axes towards what they look at; on a half
+    ring those tilts do not cancel (their mean is 7 degrees off), the horizontal x axes do."""
+    from stereo_bench.rig import world_up
+
+    cams = load_rig(path).cameras_true()
+    assert np.allclose(world_up(cams), [0, 0, 1], atol=1e-12)
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"trajectory": {"kind": "spring", "frames": 10}, "calibration": {"intrinsics_views":
+                                                                       "closeups"}},
+     "intrinsics_views: 'closeups' names frames of a session"),
+    ({"calibration": {"intrinsics_views": "closeups"}, "trajectory": {"kind": "session",
+                                                                       "closeups": 0}},
+     "needs close-up frames"),
+])
+def test_intrinsics_views_that_cannot_work_are_refused(change, message):
+    d = {**studio_dict(), **change}
+    with pytest.raises(ConfigError, match=message):
+        parse_rig(d, "studio.yaml")
+
+
+def test_two_cameras_facing_each_other_are_told_what_works():
+    d = studio_dict(count=2)
+    with pytest.raises(ValueError, match="lie \\(nearly\\) on one line, facing each other"):
+        Rig.from_config(parse_rig(d))
+    d = studio_dict(count=2, height_mm=[1500.0, 2500.0])
+    assert len(Rig.from_config(parse_rig(d)).cameras) == 2

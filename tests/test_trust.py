@@ -15,6 +15,7 @@ from stereo_bench.camera import Camera
 from stereo_bench.cli import main
 from stereo_bench.config import ConfigError, load_rig, parse_rig
 from stereo_bench.metrics import projection_difference, validity
+from stereo_bench.pipeline import load_run
 from stereo_bench.rundir import (RunLockedError, RunPaths, locked, read_json, strict,
                                  write_json)
 
@@ -100,6 +101,33 @@ def test_changed_methods_redo_calibration_but_reuse_detections(tmp_path):
     assert main([str(rig), "--out", str(out), "--methods", "opencv,bouguet"]) == 0
     assert trial.detections_done.stat().st_mtime_ns == detected
     assert set(results(out)["aggregate"]["rig"]) == {"opencv", "bouguet"}
+
+
+def test_edited_calibration_settings_redo_only_the_stages_that_read_them(tmp_path):
+    """The rig stage's settings redo the rig stage alone; the images and the detections are
+    reused; the dataset does not carry the settings (a stale copy would mislead), the results
+    and the report record the ones used."""
+    out = tmp_path / "run"
+    rig = small_rig(tmp_path)
+    assert main([str(rig), "--out", str(out), "--methods", "opencv"]) == 0
+    trial = RunPaths(out).trial(7)
+    stamps = {p: p.stat().st_mtime_ns for p in (trial.dataset.manifest, trial.detections_done,
+                                                  trial.metrics, trial.rig("opencv"))}
+    d = yaml.safe_load(rig.read_text())
+    d["calibration"] = {"loss": "huber", "loss_scale_px": 2.0}
+    rig.write_text(yaml.safe_dump(d))
+    assert main([str(rig), "--out", str(out), "--methods", "opencv"]) == 0
+    changed = {p.name for p, t in stamps.items() if p.stat().st_mtime_ns != t}
+    assert changed == {"opencv.json"}
+    entry = read_json(trial.rig("opencv"))
+    assert entry["settings"] == {"refine_intrinsics": False, "loss": "huber",
+                                 "loss_scale_px": 2.0}
+    assert entry["log"]["loss"] == "huber"
+    assert "calibration" not in yaml.safe_load(trial.dataset.config.read_text())
+    assert "calibration" not in read_json(trial.dataset.manifest)["config"]
+    assert "huber loss (scale 2 px)" in (out / "report.md").read_text()
+    # pose-eval reads the rig made with the settings it records.
+    assert "opencv" in load_run(out)[0].rigs
 
 
 # detections/done.json is read only when the calibration stage is redone (metrics.json carries
