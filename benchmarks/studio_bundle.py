@@ -1,13 +1,15 @@
 """The project's studio rig calibration beside pycolmap's bundle adjuster and OpenCV's
 calibrateMultiview.
 
-One synthetic studio: 8 cameras (1920 x 1080, fx ~ 1370 px, i.e. ~70 deg across, each with its
-own distortion; every other one with k3, so COLMAP's FULL_OPENCV, the rest OPENCV) on a 4 m
-ring, 2 m up, looking at the centre of the volume; a board of 11 x 8 points at 60 mm moves
-through the volume for ``--frames`` frames, facing a random horizontal direction and tilting; a
-camera sees a frame when it faces the board's front (within 70 deg) and all points are in its
-image. Exact projections plus Gaussian noise of ``--sigma`` px. Each camera's cam_from_board
-comes from cv2.solvePnP, as a calibration would give it; ``stereo.calibrate_rig`` and
+One synthetic studio, built by the package (config.parse_rig, rig.Rig and its ground truth): 8
+cameras (1920 x 1080, fx ~ 1370 px, i.e. ~70 deg across, each with its own distortion; every
+other one with k3, so COLMAP's FULL_OPENCV, the rest OPENCV) on a 4 m ring at heights 2.0 / 2.15
+m, looking at the centre of the volume; a checkerboard of 11 x 8 inner corners at 60 mm carried
+through the volume for ``--frames`` frames of a calibration session (trajectory.kind: session:
+the board walks, tilts and turns so that its front faces each camera in turn); a camera sees a
+frame when every point is visible in the ground truth (front towards it, inside its image).
+Exact projections plus Gaussian noise of ``--sigma`` px. Each camera's cam_from_board comes from
+its own view (stereo.planar_pose), as a calibration starts it; ``stereo.calibrate_rig`` and
 ``colmap_ref.colmap_rig_bundle`` then start from the same initial rig (``stereo.rig_start``)
 and fixed true intrinsics, and minimize the same cost. ``multiview_ref.opencv_multiview``
 (OpenCV >= 5, else its column reads n/a) takes the same observations and fixed intrinsics, but
@@ -37,71 +39,25 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy  # noqa: E402
 
-from stereo_bench.camera import (Camera, look_at_rotation, matrix_to_rodrigues,  # noqa: E402
-                                 rodrigues_to_matrix)
-from stereo_bench.stereo import calibrate_rig, rig_errors, rig_start  # noqa: E402
+from stereo_bench.config import parse_rig  # noqa: E402
+from stereo_bench.rig import Rig  # noqa: E402
+from stereo_bench.stereo import calibrate_rig, planar_pose, rig_errors, rig_start  # noqa: E402
 
 
-def studio(C: int, rng) -> list[Camera]:
-    cams = []
-    for k in range(C):
-        a = 2 * np.pi * k / C
-        pos = np.array([4000 * np.cos(a), 4000 * np.sin(a), 2000.0 + 150 * (k % 2)])
-        R = look_at_rotation(pos, np.array([0, 0, 1000.0]), np.array([0, 0, 1.0]))
-        dist = [rng.uniform(-0.12, 0.02), rng.uniform(-0.02, 0.06), rng.normal(0, 5e-4),
-                rng.normal(0, 5e-4), 0.01 * (k % 2), 0, 0, 0]
-        cams.append(Camera(f"cam{k}", 1920, 1080, 1370 * rng.uniform(0.97, 1.03),
-                           1370 * rng.uniform(0.97, 1.03), 959.5 + rng.normal(0, 8),
-                           539.5 + rng.normal(0, 8), 0.0, dist, matrix_to_rodrigues(R),
-                           -R @ pos))
-    return cams
-
-
-def board() -> np.ndarray:
-    gx, gy = np.meshgrid(np.arange(11) * 60.0, np.arange(8) * 60.0)
-    return np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], -1)
-
-
-def observe(cams, obj, frames: int, sigma: float, rng) -> np.ndarray:
-    """Image points (C, F, N, 2), NaN where a camera does not see the frame."""
-    R_wb = []
-    for yaw in rng.uniform(0, 2 * np.pi, frames):
-        facing = look_at_rotation(np.zeros(3), [np.cos(yaw), np.sin(yaw), 0], [0, 0, 1.0]).T
-        R_wb.append(facing @ rodrigues_to_matrix(rng.normal(0, 0.25, 3)))
-    R_wb = np.stack(R_wb)
-    centre = np.stack([rng.uniform(-800, 800, frames), rng.uniform(-800, 800, frames),
-                       rng.uniform(600, 1800, frames)], -1)
-    t_wb = centre - R_wb @ obj.mean(0)
-    Xw = np.einsum("fij,nj->fni", R_wb, obj) + t_wb[:, None]
-    img = np.full((len(cams), frames, len(obj), 2), np.nan)
-    for c, cam in enumerate(cams):
-        uv = cam.project(Xw)
-        towards = cam.center - centre
-        towards /= np.linalg.norm(towards, axis=-1, keepdims=True)
-        front = np.einsum("fi,fi->f", R_wb[:, :, 2], towards) < -np.cos(np.radians(70))
-        inside = np.all((uv >= 5) & (uv <= [cam.width - 6, cam.height - 6]), axis=(-1, -2))
-        ok = front & inside
-        img[c, ok] = uv[ok] + rng.normal(0, sigma, uv[ok].shape)
-    return img
-
-
-def board_poses(cams, obj, img):
-    """Each camera's own cam_from_board by cv2.solvePnP (IPPE): (C, F, 3) x 2, found (C, F)."""
-    found = np.all(np.isfinite(img), axis=(-1, -2))
-    rv = np.full(img.shape[:2] + (3,), np.nan)
-    tv = np.full(img.shape[:2] + (3,), np.nan)
-    for c, cam in enumerate(cams):
-        for f in np.flatnonzero(found[c]):
-            ok, r, t = cv2.solvePnP(obj, img[c, f], cam.K, cam.dist, flags=cv2.SOLVEPNP_IPPE)
-            if ok:
-                rv[c, f], tv[c, f] = r.ravel(), t.ravel()
-    return rv, tv, found & np.all(np.isfinite(tv), -1)
-
-
-def centres_in_cam0(cameras) -> np.ndarray:
-    """Camera centres (C, 3) mm in camera 0's frame."""
-    R0, t0 = cameras[0].R, cameras[0].tvec
-    return np.stack([R0 @ cam.center + t0 for cam in cameras])
+def studio(C: int, frames: int, seed: int, rng) -> Rig:
+    """The studio of the module notes; each camera's lens drawn from ``rng``, the session's
+    path from ``seed``."""
+    lenses = [{"width": 1920, "height": 1080, "fx": 1370 * rng.uniform(0.97, 1.03),
+               "fy": 1370 * rng.uniform(0.97, 1.03), "cx": 959.5 + rng.normal(0, 8),
+               "cy": 539.5 + rng.normal(0, 8),
+               "dist": [rng.uniform(-0.12, 0.02), rng.uniform(-0.02, 0.06), rng.normal(0, 5e-4),
+                        rng.normal(0, 5e-4), 0.01 * (k % 2)]} for k in range(C)]
+    return Rig.from_config(parse_rig({
+        "name": "studio_bundle", "seed": seed,
+        "studio": {"layout": "ring", "count": C, "radius_mm": 4000.0,
+                   "height_mm": [2000.0, 2150.0], "lenses": lenses},
+        "pattern": {"kind": "checkerboard", "squares_x": 12, "squares_y": 9, "square_mm": 60.0},
+        "trajectory": {"kind": "session", "frames": frames}}))
 
 
 def best_of(fn, repeat: int):
@@ -135,10 +91,14 @@ def main() -> None:
         from stereo_bench.multiview_ref import opencv_multiview
 
     rng = np.random.default_rng(args.seed)
-    truth = studio(args.cameras, rng)
-    obj = board()
-    img = observe(truth, obj, args.frames, args.sigma, rng)
-    rv, tv, found = board_poses(truth, obj, img)
+    rig = studio(args.cameras, args.frames, args.seed, rng)
+    truth, obj, gt = rig.cameras, rig.pattern.object_points(), rig.ground_truth()
+    found = gt.visible.all(-1)  # (C, F): every point of the board in view
+    img = np.where(found[..., None, None], gt.points, np.nan)
+    img += rng.normal(0, args.sigma, img.shape)
+    rv, tv = np.full(found.shape + (3,), np.nan), np.full(found.shape + (3,), np.nan)
+    for c, f in zip(*np.nonzero(found)):
+        rv[c, f], tv[c, f] = planar_pose(truth[c], obj, img[c, f])
     intr = [cam.with_params(rvec=np.zeros(3), tvec=np.zeros(3)) for cam in truth]
     per_frame = found.sum(0)
 
@@ -147,7 +107,7 @@ def main() -> None:
           f"({'calibrateMultiview' if opencv_multiview else 'no calibrateMultiview'}); "
           f"BLAS threads {os.environ['OPENBLAS_NUM_THREADS']}, OpenCV threads 1, Ceres threads "
           f"{args.threads}")
-    print(f"{args.cameras} cameras 1920x1080 on a 4 m ring, board {len(obj)} points, "
+    print(f"{args.cameras} cameras 1920x1080 on a 4 m ring, board {len(obj)} points, a session of "
           f"{args.frames} frames, noise {args.sigma} px; frames per camera "
           f"{found.sum(1).tolist()}; frames seen by 2+ cameras {(per_frame >= 2).sum()}, "
           f"by 1 {(per_frame == 1).sum()}, by none {(per_frame == 0).sum()}")
@@ -168,22 +128,15 @@ def main() -> None:
     def na(value, spec: str) -> str:
         return "n/a" if value is None else format(value, spec)
 
-    c_true = centres_in_cam0(truth)
-    c_ours = centres_in_cam0(ours.cameras)
     results = {"project": ours, "colmap": ref, "opencv": mv}
-    centre = {k: None if r is None else np.linalg.norm(centres_in_cam0(r.cameras) - c_true, axis=-1)
-              for k, r in results.items()}
-    rot = {k: None if r is None else rig_errors(r.cameras, truth)["rotation_deg"]
-           for k, r in results.items()}
-    d_centre = {k: None if results[k] is None else
-                np.linalg.norm(centres_in_cam0(results[k].cameras) - c_ours, axis=-1)
-                for k in ("colmap", "opencv")}
-    d_rot = {k: None if results[k] is None else
-             rig_errors(results[k].cameras, ours.cameras)["rotation_deg"]
-             for k in ("colmap", "opencv")}
+    # rig_errors' centre_mm: between two rigs' centres of a camera, each in its camera 0's frame
+    truth_err = {k: None if r is None else rig_errors(r.cameras, truth)
+                 for k, r in results.items()}
+    from_ours = {k: None if results[k] is None else rig_errors(results[k].cameras, ours.cameras)
+                 for k in ("colmap", "opencv")}
 
-    def cell(d, k, c, spec):
-        return na(None if d[k] is None else d[k][c], spec)
+    def cell(errors, k, key, c, spec):
+        return na(None if errors[k] is None else errors[k][key][c], spec)
 
     names = ("project", "colmap", "opencv")
     print()
@@ -193,9 +146,10 @@ def main() -> None:
           + f"{'centre mm':>12}{'rot. deg':>12}" * 2)
     for c, cam in enumerate(truth):
         print(f"{cam.name:<8}{ref.log['camera_models'][c]:<13}"
-              + "".join(f"{cell(centre, n, c, '.4f'):>11}" for n in names)
-              + "".join(f"{cell(rot, n, c, '.5f'):>11}" for n in names)
-              + "".join(f"{cell(d_centre, k, c, '.2e'):>12}{cell(d_rot, k, c, '.2e'):>12}"
+              + "".join(f"{cell(truth_err, n, 'centre_mm', c, '.4f'):>11}" for n in names)
+              + "".join(f"{cell(truth_err, n, 'rotation_deg', c, '.5f'):>11}" for n in names)
+              + "".join(f"{cell(from_ours, k, 'centre_mm', c, '.2e'):>12}"
+                        f"{cell(from_ours, k, 'rotation_deg', c, '.2e'):>12}"
                         for k in ("colmap", "opencv")))
     print()
     print(f"{'':<34}{'project':>18}{'colmap':>18}{'opencv':>18}")
@@ -226,6 +180,7 @@ def main() -> None:
         print(f"opencv:  its own RMS {mv.log['opencv_rms_px']:.12f} px (its float32 points); "
               f"{mv.log['n_views']} views; left out {mv.log['left_out']}; initialization "
               f"pairs {pairs}")
+
 
 if __name__ == "__main__":
     main()

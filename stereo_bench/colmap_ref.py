@@ -60,8 +60,8 @@ same cost in both.
 
 Solver settings: Ceres' function, gradient and parameter tolerances default to 1e-15 (a
 reference should sit at the minimum: on the test studio with 0.3 px noise a Gauss-Newton step
-from its solution moves the rig by ~1e-8 mm; at 1e-12 by ~3e-4 mm), and one thread (Ceres' threaded reductions change the last
-digits, and so the number of steps, with the thread count).
+from its solution moves the rig by ~4e-8 mm; at 1e-12 by ~4e-5 mm), and one thread (Ceres'
+threaded reductions change the last digits, and so the number of steps, with the thread count).
 """
 
 from __future__ import annotations
@@ -73,9 +73,8 @@ from typing import Sequence
 import numpy as np
 
 from .calibrate.base import MIN_POINTS_PER_VIEW
-from .camera import (Camera, compose, matrix_to_rodrigues, project_points,
-                     rodrigues_to_matrix)
-from .stereo import RigCalibration
+from .camera import Camera, matrix_to_rodrigues, rodrigues_to_matrix
+from .stereo import RigCalibration, covisibility, reprojection_rms, unreachable
 
 PIXEL_SHIFT = 0.5  # COLMAP pixel coordinate = OpenCV pixel coordinate + PIXEL_SHIFT
 LOSSES = ("trivial", "soft_l1", "huber", "cauchy")
@@ -187,21 +186,14 @@ def _selection(image_points: np.ndarray, seen: np.ndarray, min_views: int):
 
 def _check_connected(views: np.ndarray, names: Sequence[str]) -> None:
     """Every camera must be joined to camera 0 through frames seen together: (C, F) bool."""
-    shared = (views[:, None, :] & views[None, :, :]).any(-1)
-    np.fill_diagonal(shared, False)
-    lonely = [names[c] for c in range(len(views)) if not shared[c].any()]
+    together = covisibility(views) > 0
+    np.fill_diagonal(together, False)
+    lonely = [names[c] for c in np.flatnonzero(~together.any(1))]
     if lonely:
         raise ValueError(f"seen: cameras {lonely} see no frame together with another camera; "
                          f"expected every camera in at least one frame seen by two or more")
-    joined, todo = {0}, [0]
-    while todo:
-        i = todo.pop()
-        for j in np.flatnonzero(shared[i]):
-            if int(j) not in joined:
-                joined.add(int(j))
-                todo.append(int(j))
-    if len(joined) < len(views):
-        free = [names[c] for c in range(len(views)) if c not in joined]
+    free = [names[c] for c in unreachable(views)]
+    if free:
         raise ValueError(f"seen: cameras {free} share no frame with camera {names[0]!r} or any "
                          f"camera connected to it; the rig would not be determined")
 
@@ -287,23 +279,6 @@ def rig_reconstruction(cameras: Sequence[Camera], object_points, image_points, c
 # ----------------------------------------------------------------------------------------------
 # Bundle adjustment
 # ----------------------------------------------------------------------------------------------
-
-def _rms(cameras, obj, img, R, t, board_rvecs, board_tvecs, observed):
-    """RMS reprojection error (px per point) through the project's camera model: (all, (C,))."""
-    sq, per = [], []
-    for c, cam in enumerate(cameras):
-        e = []
-        for f in np.flatnonzero(observed[c].any(-1)):
-            Rc, tc = compose(R[c], t[c], rodrigues_to_matrix(board_rvecs[f]), board_tvecs[f])
-            pts = observed[c, f]
-            uv = project_points(obj[pts], cam.intrinsics, cam.dist, matrix_to_rodrigues(Rc), tc)
-            e.append(np.sum((uv - img[c, f, pts]) ** 2, axis=-1))
-        e = np.concatenate(e) if e else np.zeros(0)
-        sq.append(e)
-        per.append(np.sqrt(np.mean(e)) if len(e) else np.nan)
-    allsq = np.concatenate(sq)
-    return float(np.sqrt(np.mean(allsq))), np.array(per)
-
 
 def colmap_rig_bundle(
     cameras: Sequence[Camera],
@@ -393,7 +368,9 @@ def colmap_rig_bundle(
                          f"frame in the adjustment, got NaN or inf at frames {bad[:10]}")
     layout = rig_reconstruction(cameras, obj, img, R, t, rv, tv, seen, min_views)
     rec = layout.reconstruction
-    rms0, _ = _rms(cameras, obj, img, R, t, rv, tv, layout.observed)
+    start = [cam.with_params(rvec=matrix_to_rodrigues(R[c]), tvec=t[c])
+             for c, cam in enumerate(cameras)]
+    rms0, _ = reprojection_rms(start, obj, img, rv, tv, layout.observed)
 
     options = pycolmap.BundleAdjustmentOptions()
     options.print_summary = False
@@ -439,7 +416,7 @@ def colmap_rig_bundle(
                  for c, cam in enumerate(cameras)]
     out = [cam.with_params(rvec=matrix_to_rodrigues(R_out[c]), tvec=t_out[c])
            for c, cam in enumerate(intrinsic)]
-    rms, rms_per = _rms(out, obj, img, R_out, t_out, rv_out, tv_out, layout.observed)
+    rms, rms_per = reprojection_rms(out, obj, img, rv_out, tv_out, layout.observed)
     n_obs = int(layout.observed.sum())
     return RigCalibration(
         cameras=out, board_rvecs=rv_out, board_tvecs=tv_out, frames_used=layout.frames_used,

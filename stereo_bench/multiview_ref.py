@@ -30,9 +30,9 @@ OpenCV's conventions, and how they are mapped
   normalization a no-op; translations come back in board units and are multiplied back to mm.
 * Precision: object and image points go in as float32 (OpenCV asserts CV_32F). Rounding a pixel
   coordinate between 256 and 512 to float32 is a uniform error of up to 3e-5 px (RMS ~1.8e-5
-  px), a noise 1/15000 of 0.3 px that moves a 3.5 m studio's cameras by ~3e-4 mm (measured:
-  noise-free observations give the true rig to 1.7e-4 mm and 3e-6 deg, RMS 2e-6 px through the
-  project's model, 7e-6 px as OpenCV computes it on its float32 copies).
+  px), a noise 1/15000 of 0.3 px that moves a 3.5 m studio's cameras by ~1e-4 mm (measured:
+  noise-free observations give the true rig to 2.3e-4 mm and 2.5e-7 deg, RMS 2e-6 px through
+  the project's model, 7e-6 px as OpenCV computes it on its float32 copies).
 * Intrinsics. ``fix_intrinsics=True`` (the default) passes the cameras' K and distortion with
   ``flags=CALIB_USE_INTRINSIC_GUESS``; they come back unchanged. CALIB_FIX_INTRINSIC (a
   stereoCalibrate flag) is ignored by calibrateMultiview (measured: with it alone OpenCV
@@ -57,20 +57,24 @@ What OpenCV does (5.0.0), as its source reads and as far as measured
    every frame in the problem, with a robust weight per board point, exp(-|e|^2 / 30 px^2) on
    its squared pixel error |e|^2, recomputed at every step (the stationary point of a
    Welsch-type cost, scale ~5.5 px). Measured with the project's residuals on the test studio
-   at 0.3 px noise: the minimum of that cost is 1-2 % of the rig's error against the truth away
-   from the least-squares minimum ``calibrate_rig`` and pycolmap find; a corner off by tens of
-   pixels is ignored outright (tests).
+   at 0.3 px noise: the minimum of that cost is about 1 % of the rig's error against the truth
+   away from the least-squares minimum ``calibrate_rig`` and pycolmap find; a corner off by
+   tens of pixels is ignored outright (tests).
 
-Limits met: (a) its LM stops short of its own minimum: on the test studio with 0.3 px noise one
-Gauss-Newton step of its own robust cost from its solution still moves a camera by up to ~0.09
-mm (1-4 % of the error against the truth), and adding frames that only one camera saw (which
-cannot move the rig at a minimum: with fixed intrinsics their poses are decoupled) moves it by
-as much; neither ``criteria`` (even 1000 iterations at epsilon 0) nor a start given with
-CALIB_USE_EXTRINSIC_GUESS (the identity, or the minimum of its own cost) changed its result in
-the last digit, so neither is passed. (b) Partial views: its documentation says to mark undetected
-points (-1, -1); 5.0.0 uses such placeholders as points (replacing 20 of 54 points by (-1, -1)
-in half the views, the RMS came back 2.6e17 px). (c) NaN image points make it fail ("Failed to
-build tree for stereo calibration").
+Limits met: (a) its LM can stop short of its own minimum. On a poorly conditioned studio (5
+cameras on a 3.5 m ring, a 70 px board facing directions drawn at random, the rig's errors
+against the truth 2-7 mm at 0.3 px noise) one Gauss-Newton step of its own robust cost from its
+solution still moved a camera by up to ~0.1 mm (1-4 % of the error against the truth), and
+adding frames that only one camera saw (which cannot move the rig at a minimum: with fixed
+intrinsics their poses are decoupled) moved it by as much; neither ``criteria`` (even 1000
+iterations at epsilon 0) nor a start given with CALIB_USE_EXTRINSIC_GUESS (the identity, or the
+minimum of its own cost) changed its result in the last digit, so neither is passed. On the
+test studio (a calibration session, errors ~1 mm) it reaches its minimum: that step moves a
+camera by ~1e-4 of its error against the truth, the added frames by 2e-5 (tests). (b) Partial
+views: its documentation says to mark undetected points (-1, -1); 5.0.0 uses such placeholders
+as points (replacing 20 of 54 points by (-1, -1) in half the views of the test studio, the RMS
+came back 9e4 px). (c) NaN image points make it fail ("Failed to build tree for stereo
+calibration").
 
 Subset supported
 ----------------
@@ -94,8 +98,8 @@ from typing import Sequence
 import numpy as np
 
 from .calibrate.base import MIN_POINTS_PER_VIEW
-from .camera import Camera, compose, matrix_to_rodrigues, project_points, rodrigues_to_matrix
-from .stereo import RigCalibration
+from .camera import Camera, matrix_to_rodrigues, rodrigues_to_matrix
+from .stereo import RigCalibration, covisibility, reprojection_rms, unreachable
 
 ROBUST_SCALE_PX2 = 30.0  # OpenCV's per-point weight exp(-|e|^2 / ROBUST_SCALE_PX2)
 # calibrateCamera flags that would give more than the project's 8 distortion coefficients, or
@@ -189,15 +193,11 @@ def _check_inputs(cameras, object_points, image_points, seen, fix_intrinsics, in
 
 def _check_connected(views: np.ndarray, names: Sequence[str]) -> None:
     """Every camera joined to camera 0 through frames seen together (views (C, F) bool)."""
-    from scipy.sparse.csgraph import connected_components
-
     empty = [names[c] for c in np.flatnonzero(~views.any(axis=1))]
     if empty:
         raise ValueError(f"seen: cameras {empty} have no full view of the board in a frame in "
                          f"the problem; calibrateMultiview takes full views only")
-    shared = (views[:, None, :] & views[None, :, :]).any(-1)
-    _, label = connected_components(shared, directed=False)
-    apart = [names[c] for c in np.flatnonzero(label != label[0])]
+    apart = [names[c] for c in unreachable(views)]
     if apart:
         raise ValueError(f"seen: cameras {apart} share no full view of a frame with camera "
                          f"{names[0]!r} or any camera connected to it; the rig would not be "
@@ -207,22 +207,6 @@ def _check_connected(views: np.ndarray, names: Sequence[str]) -> None:
 def _rotation(r) -> np.ndarray:
     r = np.asarray(r, dtype=np.float64)
     return r.reshape(3, 3) if r.size == 9 else rodrigues_to_matrix(r.reshape(3))
-
-
-def _rms(cameras, obj, img, R, t, board_rvecs, board_tvecs, views):
-    """RMS reprojection error (px per point) through the project's camera model over the views
-    (C, F) bool, and per camera (C,)."""
-    per, allsq = [], []
-    for c, cam in enumerate(cameras):
-        sq = []
-        for f in np.flatnonzero(views[c]):
-            Rc, tc = compose(R[c], t[c], rodrigues_to_matrix(board_rvecs[f]), board_tvecs[f])
-            uv = project_points(obj, cam.intrinsics, cam.dist, matrix_to_rodrigues(Rc), tc)
-            sq.append(np.sum((uv - img[c, f]) ** 2, axis=-1))
-        sq = np.concatenate(sq) if sq else np.zeros(0)
-        allsq.append(sq)
-        per.append(np.sqrt(np.mean(sq)) if len(sq) else np.nan)
-    return float(np.sqrt(np.mean(np.concatenate(allsq)))), np.array(per)
 
 
 def opencv_multiview(
@@ -322,7 +306,8 @@ def opencv_multiview(
                                              skew=K[0, 1], dist=np.pad(d[:8], (0, 8 - d[:8].size))))
     out = [cam.with_params(rvec=matrix_to_rodrigues(R[c]), tvec=t[c])
            for c, cam in enumerate(intrinsic)]
-    rms, rms_per = _rms(out, obj, img, R, t, rv_out, tv_out, in_problem)
+    rms, rms_per = reprojection_rms(out, obj, img, rv_out, tv_out,
+                                    np.broadcast_to(in_problem[..., None], (C, F, N)))
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2) if pairs is not None else []
     partial = seen & ~full
     return RigCalibration(
@@ -339,5 +324,5 @@ def opencv_multiview(
                           "views_in_frames_seen_by_fewer": int((full & ~used[None, :]).sum()),
                           "views_dropped_by_opencv": int((views & ~in_problem).sum())},
              "n_views": int(in_problem.sum()), "n_observations": int(in_problem.sum()) * N,
-             "covisibility": (in_problem[:, None, :] & in_problem[None, :, :]).sum(-1),
+             "covisibility": covisibility(in_problem),
              "opencv_time_s": call_s})

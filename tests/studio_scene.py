@@ -1,69 +1,57 @@
-"""The synthetic studio the rig-reference tests share (test_colmap_ref, test_multiview_ref).
+"""The synthetic studio the rig-reference tests share (test_colmap_ref, test_multiview_ref), built
+by the package: ``config.parse_rig`` of a studio, ``rig.Rig.from_config``, its ground truth.
 
-5 cameras (640 x 480, fx ~ 500, distortion; cameras 1 and 3 with k3) on a 3.5 m ring looking at
-the centre, and a 9 x 6 board at 60 mm that moves through the volume facing a random horizontal
-direction; a camera sees a frame when it faces the board's front (within 70 deg) and every point
-is inside its image. Each camera sees about a third of the frames, most frames two or three.
+5 cameras (640 x 480, fx ~ 500, distortion; cameras 1 and 3 with k3) on a 3.5 m ring at heights
+1.8 / 2.0 m looking at the volume's centre, and a checkerboard of 9 x 6 inner corners at 60 mm
+carried through the volume for 60 frames of a calibration session (trajectory.kind: session),
+turning so that its front faces each camera in turn. A camera sees a frame when every point is
+visible in the ground truth (the board's front towards it, inside its image): each camera sees
+about half the frames, most frames two or three cameras.
 """
 
-import cv2
 import numpy as np
 
-from stereo_bench.camera import Camera, look_at_rotation, matrix_to_rodrigues, rodrigues_to_matrix
-from stereo_bench.stereo import cam_from_cam0
+from stereo_bench.camera import matrix_to_rodrigues, rodrigues_to_matrix
+from stereo_bench.config import parse_rig
+from stereo_bench.rig import Rig
+from stereo_bench.stereo import cam_from_cam0, planar_pose
 
 FRAMES = 60
+LENSES = [
+    {"fx": 515.7, "fy": 520.6, "cx": 326.5, "cy": 244.7, "dist": [-0.0226, -0.0011, 6e-4, 1e-4]},
+    {"fx": 517.9, "fy": 476.7, "cx": 313.8, "cy": 236.3,
+     "dist": [-0.0413, 0.0455, -6e-4, 0.0, 0.01]},
+    {"fx": 476.4, "fy": 481.2, "cx": 316.7, "cy": 241.8, "dist": [0.0226, 0.0179, 4e-4, 1e-3]},
+    {"fx": 509.3, "fy": 507.5, "cx": 315.0, "cy": 239.0,
+     "dist": [-0.0269, 0.0069, -7e-4, -9e-4, 0.01]},
+    {"fx": 499.3, "fy": 519.5, "cx": 323.9, "cy": 247.5, "dist": [-0.123, 0.0305, 2e-4, 4e-4]},
+]
 
 
-def ring(C=5, radius=3500.0, seed=0):
-    rng = np.random.default_rng(seed)
-    cams = []
-    for k in range(C):
-        a = 2 * np.pi * k / C
-        pos = np.array([radius * np.cos(a), radius * np.sin(a), 1800.0 + 200 * (k % 2)])
-        R = look_at_rotation(pos, np.array([0, 0, 1000.0]), np.array([0, 0, 1.0]))
-        dist = [rng.uniform(-0.15, 0.05), rng.uniform(-0.02, 0.05), rng.normal(0, 1e-3),
-                rng.normal(0, 1e-3), 0.01 * (k % 2), 0, 0, 0]
-        cams.append(Camera(f"cam{k}", 640, 480, 500 * rng.uniform(0.95, 1.05),
-                           500 * rng.uniform(0.95, 1.05), 320 + rng.normal(0, 5),
-                           240 + rng.normal(0, 5), 0.0, dist, matrix_to_rodrigues(R), -R @ pos))
-    return cams
+def studio() -> Rig:
+    """The studio: rig.cameras the true cameras (cam1 ... cam5), rig.pattern the board."""
+    return Rig.from_config(parse_rig({
+        "name": "reference_studio",
+        "studio": {"layout": "ring", "count": 5, "radius_mm": 3500.0,
+                   "height_mm": [1800.0, 2000.0],
+                   "lenses": [{"width": 640, "height": 480, **lens} for lens in LENSES]},
+        "pattern": {"kind": "checkerboard", "squares_x": 10, "squares_y": 7, "square_mm": 60.0},
+        "trajectory": {"kind": "session", "frames": FRAMES}}))
 
 
-def board():
-    gx, gy = np.meshgrid(np.arange(9) * 60.0, np.arange(6) * 60.0)
-    return np.stack([gx.ravel(), gy.ravel(), np.zeros(54)], -1)
+def observe(rig: Rig, sigma: float = 0.0, seed: int = 0) -> np.ndarray:
+    """Image points (C, F, N, 2) of the views in which every point is visible, plus Gaussian
+    noise of ``sigma`` px; NaN elsewhere."""
+    gt = rig.ground_truth()
+    img = np.where(gt.visible.all(-1)[..., None, None], gt.points, np.nan)
+    return img + np.random.default_rng(seed).normal(0, sigma, img.shape)
 
 
-def observe(cams, obj, sigma, seed=0, frames=FRAMES):
-    """world_from_board (F,3,3), (F,3) and image points (C,F,N,2), NaN where not seen."""
-    rng = np.random.default_rng(seed)
-    R_wb = []
-    for yaw in rng.uniform(0, 2 * np.pi, frames):
-        facing = look_at_rotation(np.zeros(3), [np.cos(yaw), np.sin(yaw), 0], [0, 0, 1.0]).T
-        R_wb.append(facing @ rodrigues_to_matrix(rng.normal(0, 0.25, 3)))
-    R_wb = np.stack(R_wb)
-    centre = np.stack([rng.uniform(-600, 600, frames), rng.uniform(-600, 600, frames),
-                       rng.uniform(700, 1500, frames)], -1)
-    t_wb = centre - R_wb @ obj.mean(0)
-    Xw = np.einsum("fij,nj->fni", R_wb, obj) + t_wb[:, None]
-    img = np.full((len(cams), frames, len(obj), 2), np.nan)
-    for c, cam in enumerate(cams):
-        uv = cam.project(Xw)
-        towards = cam.center - centre
-        towards /= np.linalg.norm(towards, axis=-1, keepdims=True)
-        front = np.einsum("fi,fi->f", R_wb[:, :, 2], towards) < -np.cos(np.radians(70))
-        inside = np.all((uv >= 5) & (uv <= [cam.width - 6, cam.height - 6]), axis=(-1, -2))
-        ok = front & inside
-        img[c, ok] = uv[ok] + rng.normal(0, sigma, uv[ok].shape)
-    return R_wb, t_wb, img
-
-
-def true_start(cams, R_wb, t_wb):
+def true_start(rig: Rig):
     """The true cam_from_cam0 (C,3,3), (C,3) and cam0_from_board rvecs, tvecs (F,3)."""
-    R, t = cam_from_cam0(cams)
-    R0 = cams[0].R
-    return R, t, matrix_to_rodrigues(R0 @ R_wb), t_wb @ R0.T + cams[0].tvec
+    R, t = cam_from_cam0(rig.cameras)
+    R0b, t0b = rig.cam_from_board(rig.cameras[0])
+    return R, t, matrix_to_rodrigues(R0b), t0b
 
 
 def perturbed(R, t, rv, tv, seed=5):
@@ -82,15 +70,12 @@ def intrinsics_only(cams):
     return [c.with_params(rvec=np.zeros(3), tvec=np.zeros(3)) for c in cams]
 
 
-def pnp_board_poses(cams, obj, img):
-    """Each camera's own cam_from_board by cv2.solvePnP (IPPE), as a calibration would give it:
-    rvecs, tvecs (C,F,3), NaN where the camera did not see the frame, and found (C,F) bool."""
+def board_poses(cams, obj, img):
+    """Each camera's own cam_from_board from its view (stereo.planar_pose), as a calibration
+    would start it: rvecs, tvecs (C,F,3), NaN where the camera did not see the frame, and
+    found (C,F) bool."""
     found = np.all(np.isfinite(img), axis=(-1, -2))
-    rv = np.full(img.shape[:2] + (3,), np.nan)
-    tv = np.full(img.shape[:2] + (3,), np.nan)
-    for c, cam in enumerate(cams):
-        for f in np.flatnonzero(found[c]):
-            ok, r, t = cv2.solvePnP(obj, img[c, f], cam.K, cam.dist, flags=cv2.SOLVEPNP_IPPE)
-            assert ok
-            rv[c, f], tv[c, f] = r.ravel(), t.ravel()
+    rv, tv = np.full(img.shape[:2] + (3,), np.nan), np.full(img.shape[:2] + (3,), np.nan)
+    for c, f in zip(*np.nonzero(found)):
+        rv[c, f], tv[c, f] = planar_pose(cams[c], obj, img[c, f])
     return rv, tv, found

@@ -1,8 +1,8 @@
 """pose-eval against exact ground truth: placement, detections, triangulation, fit, metrics, CLI.
 
-Rigs are the paper's (configs/paper/*.yaml) and two studios written here (a Human3.6M-like
-rectangle of 4 cameras, a TotalCapture-like ring of 8); estimated rigs are the true ones with
-known errors.
+Rigs are the paper's (configs/paper/*.yaml) and two studio presets (configs/studios: a
+Human3.6M-like rectangle of 4 cameras, a TotalCapture-like ring of 8); estimated rigs are the
+true ones with known errors.
 """
 
 import json
@@ -30,6 +30,11 @@ from stereo_bench.rundir import RunPaths, write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 WIDE, MIXED = ROOT / "configs/paper/wide_pair.yaml", ROOT / "configs/paper/mixed_pair.yaml"
+# h36m: 4 cameras at 1500 mm on the corners of a 3600 x 8400 mm rectangle, 4.57 m from its
+# centre, cam1 and cam2 on one long side; ring: 8 cameras on a 3500 mm circle at heights
+# alternating 1500 / 2500 mm. All look at [0, 0, 1000] in a z-up world (floor z = 0).
+STUDIOS = {"h36m": ROOT / "configs/studios/h36m_rectangle.yaml",
+           "ring": ROOT / "configs/studios/ring8.yaml"}
 
 
 @pytest.fixture(scope="module")
@@ -62,24 +67,9 @@ def standing(model, cams, yaw=0.0):
 
 
 def studio(kind: str) -> dict:
-    """A studio's rig file data, cameras listed one by one, all looking at [0, 0, 1000] in a z-up
-    world (floor z = 0): ``h36m``, 4 cameras at 1500 mm on the corners of a 3600 x 8400 mm
-    rectangle, 4.57 m from its centre (Human3.6M-like); ``ring``, 8 cameras on a 3500 mm circle
-    at heights alternating 1500 / 2500 mm (TotalCapture-like)."""
-    if kind == "h36m":
-        places = [(x, y, 1500.0) for x, y in ((1800, 4200), (-1800, 4200), (-1800, -4200),
-                                                (1800, -4200))]
-        lens = dict(width=1000, height=1000, fx=1145.0, fy=1145.0, cx=499.5, cy=499.5,
-                    dist=[-0.2, 0.24, 0, 0, 0])
-    else:
-        angles = np.radians(45.0 * np.arange(8))
-        places = [(3500 * np.cos(a), 3500 * np.sin(a), 1500.0 + 1000.0 * (i % 2))
-                  for i, a in enumerate(angles)]
-        lens = dict(width=1920, height=1080, fx=1100.0, fy=1100.0, cx=959.5, cy=539.5,
-                    dist=[-0.05, 0.01, 0, 0, 0])
-    cams = [dict(name=f"{kind}{i}", **lens, position_mm=[float(v) for v in p],
-                 look_at_mm=[0.0, 0.0, 1000.0], up=[0.0, 0.0, 1.0]) for i, p in enumerate(places)]
-    return {"name": f"{kind}_studio", "cameras": cams, "pattern": {"kind": "charuco"}}
+    """A studio preset's rig file data (STUDIOS) with its cameras listed one by one, as the
+    resolved configuration lists them, to edit."""
+    return load_rig(STUDIOS[kind]).model_dump(mode="json")
 
 
 def outward_ring() -> dict:
@@ -91,13 +81,7 @@ def outward_ring() -> dict:
 
 
 def studio_cameras(kind: str):
-    return parse_rig(studio(kind), kind).cameras_true()
-
-
-def studio_file(tmp_path: Path, kind: str) -> Path:
-    path = tmp_path / f"{kind}.yaml"
-    path.write_text(yaml.safe_dump(studio(kind)))
-    return path
+    return cameras(STUDIOS[kind])
 
 
 # --- scene -----------------------------------------------------------------------------------
@@ -355,7 +339,7 @@ def test_studio_body_stands_at_the_centre_on_its_floor_facing_camera_0(model, ki
 
 
 def test_occlusion_in_a_ring_of_eight_hides_the_far_side(model):
-    cams = studio_cameras("ring")  # ring2 (+y) sees the body's left side, ring6 its right
+    cams = studio_cameras("ring")  # cam3 (+y) sees the body's left side, cam7 its right
     hidden = scene_occlusion(cams, standing(model, cams))
     assert hidden.shape == (8, 1, 24)
     assert not hidden[0].any()  # measured: from the front, arms down, nothing is hidden
@@ -394,14 +378,14 @@ def test_studio_gt_floor_and_the_cost_of_a_turned_camera(model, kind, floor_mm):
         entries, _ = cli.evaluate_trial(cams, rigs, kp, scene)
         gt = entries["gt"]["triangulated"]
         assert gt["missing_joints"] == 0
-        # Measured over 10 trials of 15 frames at 1 px: 5.94 ± 0.20 mm (5.60-6.23) on the
+        # Measured over 10 trials of 15 frames at 1 px: 5.98 ± 0.20 mm (5.65-6.21) on the
         # 4-camera rectangle, 2.49 ± 0.06 mm (2.41-2.56) on the 8-camera ring; at 4.6 and 3.7 m
         # a pixel spans 4.0 and 3.3 mm, which more views and wider angles average down. The
         # bounds leave ten standard deviations either way and stay under the aims of 15 and 10.
         assert floor_mm[0] < gt["mpjpe_mm"] < floor_mm[1]
         # The true cameras passed as an estimate cost exactly nothing: the same numbers.
         assert entries["truth"]["triangulated"]["excess_mpjpe_mm"] == 0.0
-        # Camera 1 turned about its centre (measured at 0.1 / 0.3 / 1 deg: +1.8 / +10.5 / +46 mm
+        # Camera 1 turned about its centre (measured at 0.1 / 0.3 / 1 deg: +1.9 / +10.8 / +47 mm
         # on the rectangle, +0.39 / +2.5 / +12 mm on the ring, whose 8 views outvote one).
         costs = [entries[f"{d} deg"]["triangulated"]["excess_mpjpe_mm"] for d in turns]
         assert 0 < costs[0] < costs[1] < costs[2]
@@ -507,7 +491,7 @@ def test_cli_fit_smpl_reports_both_stages(tmp_path):
 
 
 def test_cli_gt_on_a_studio_rig_file(tmp_path, capsys):
-    rig, out = studio_file(tmp_path, "h36m"), tmp_path / "out"
+    rig, out = STUDIOS["h36m"], tmp_path / "out"
     assert cli.main(["--calib", "gt", "--rig", str(rig), "--frames", "10", "--out", str(out)]) == 0
     res = json.loads((out / "results.json").read_text())
     assert res["settings"]["surrounded"] and res["settings"]["distance_mm"] == pytest.approx(
@@ -539,7 +523,7 @@ def test_cli_gt_on_a_studio_rig_file(tmp_path, capsys):
 
 
 def test_cli_costs_of_a_studio_run_with_their_spread(tmp_path):
-    rig = studio_file(tmp_path, "h36m")
+    rig = STUDIOS["h36m"]
     truth = cameras(rig)
     run = write_run(tmp_path / "run", rig, {"zhang": turn_camera(truth, 0.3, about_centre=True),
                                             "bouguet": truth})
