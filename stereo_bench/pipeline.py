@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from .calibrate import get_calibrator
+from .calibrate.base import MIN_POINTS_PER_VIEW
 from .camera import Camera
 from .config import CalibrationConfig, RigConfig
 from .dataset import Dataset, dataset_fingerprint, write_dataset
@@ -77,8 +78,8 @@ def rig_calibration(ds: Dataset, trial: TrialPaths, method: str,
     estimated rig (DLT then reprojection refinement) against their true positions, both in the
     reference camera's frame, in mm, over the whole volume and per shell of distance from its
     centre (the point nearest every camera's axis for a studio, else the mean board point);
-    ``centre_rmse_mm`` does the same for the board's centre (the mean of the triangulated points
-    of a frame against the mean of the true ones). Per camera: rotation and centre errors with
+    ``centre_rmse_mm`` does the same for the board's centre (the mean of the points triangulated
+    in a frame against the mean of the same points' truth). Per camera: rotation and centre errors with
     the reference camera fixed, and again after a similarity alignment (3+ cameras), beside the
     reprojection error, so that a low reprojection error cannot hide a wrong geometry.
     """
@@ -104,8 +105,12 @@ def rig_calibration(ds: Dataset, trial: TrialPaths, method: str,
     est_pts = triangulate(rig.cameras, image_points)  # NaN where fewer than two views
     ok = np.all(np.isfinite(est_pts), axis=-1)
     err = np.linalg.norm(est_pts - true_pts, axis=-1)[ok]
-    frames = ok.all(axis=1)
-    centre_err = np.linalg.norm(est_pts[frames].mean(1) - true_pts[frames].mean(1), axis=-1)
+    # Per frame, the centroid of the points triangulated in it against the centroid of the same
+    # points' truth: a studio's partial views rarely triangulate the whole board.
+    frames = ok.sum(axis=1) >= MIN_POINTS_PER_VIEW
+    w = ok[frames][..., None]
+    diff = np.where(w, est_pts[frames] - true_pts[frames], 0.0)  # NaN where not triangulated
+    centre_err = np.linalg.norm(diff.sum(1) / w.sum(1), axis=-1)
     try:
         centre = truth[0].world_to_cam(volume_centre(truth))
     except ValueError:  # cameras that look one way: the middle of the board's path
