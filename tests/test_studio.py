@@ -368,3 +368,42 @@ def test_two_cameras_facing_each_other_are_told_what_works():
         Rig.from_config(parse_rig(d))
     d = studio_dict(count=2, height_mm=[1500.0, 2500.0])
     assert len(Rig.from_config(parse_rig(d)).cameras) == 2
+
+
+def test_the_pipeline_recovers_a_studio_exactly_from_exact_detections(tmp_path):
+    """The run's own path (intrinsics from the close-ups only, planar poses for the walk, the
+    graph, then the bundle adjustment), fed exact detections: every camera to 1e-6 mm."""
+    from stereo_bench.dataset import write_dataset
+    from stereo_bench.detect import CameraDetections, resolve_method
+    from stereo_bench.evaluate import detections_fingerprint
+    from stereo_bench.pipeline import run_trial
+    from stereo_bench.rundir import RunPaths, write_json
+
+    d = studio_dict()
+    d["studio"]["lenses"] = [{**LENS, "width": 320, "height": 240, "cx": 159.5, "cy": 119.5,
+                              "fx": 250.0, "fy": 250.0}]
+    d["environment"] = {"kind": "clean", "supersampling": 1}
+    d["calibration"] = {"intrinsics_views": "closeups"}
+    cfg = parse_rig(d)
+    trial = RunPaths(tmp_path).trial(cfg.seed)
+    ds = write_dataset(cfg, trial.dataset.root)
+    gt = ds.ground_truth
+    for c, cam in enumerate(ds.cameras):  # the detector replaced by the truth
+        points = np.where(gt.visible[c][..., None], gt.points[c], np.nan)
+        found = gt.visible[c].sum(axis=1) >= 8
+        CameraDetections(cam.name, ds.pattern.kind, resolve_method(ds.pattern, None), points,
+                         found, ds.ids, {int(f): "not seen" for f in np.flatnonzero(~found)}
+                         ).save(trial.detection(cam.name))
+    write_json(trial.detections_done, {"fingerprint": detections_fingerprint(ds),
+                                       "detect_s": 0.0})
+    report = run_trial(cfg, tmp_path, ["zhang"])
+    entry = report["rig"]["zhang"]
+    assert "error" not in entry, entry
+    errors = entry["camera_errors"]
+    assert max(e["centre_mm"] for e in errors.values()) < 1e-6
+    assert max(e["rotation_deg"] for e in errors.values()) < np.degrees(1e-8)
+    # The intrinsics came from the close-ups alone, the rig from every frame two cameras share.
+    assert report["intrinsics_views"] == "closeups"
+    own = int((gt.visible[0][ds.closeup_of == 0].sum(axis=1) >= 8).sum())
+    assert own > 0 and report["calibration"]["zhang"]["cam1"]["views"] == own
+    assert entry["frames_used"] > own
