@@ -12,7 +12,7 @@ from stereo_bench.camera import matrix_to_rodrigues
 from stereo_bench.config import ConfigError, load_rig, parse_rig
 from stereo_bench.rig import Rig, volume_centre
 from stereo_bench.stereo import (aligned_rig_errors, calibrate_rig, cam_from_cam0, planar_pose,
-                                 rig_errors, similarity_transform)
+                                 rig_errors, similarity_transform, unreachable)
 
 STUDIOS = sorted((Path(__file__).parent.parent / "configs" / "studios").glob("*.yaml"))
 LENS = {"width": 640, "height": 480, "fx": 500.0, "fy": 500.0, "cx": 319.5, "cy": 239.5,
@@ -118,16 +118,17 @@ def test_session_shows_each_camera_the_board_part_of_the_time(path):
         # Its own close-ups show it the whole board in nearly every frame.
         own = rig.closeup_of == c
         assert gt.visible[c, own].all(axis=1).mean() >= 0.9
-    # The walk joins every camera to every other through frames two cameras share.
-    shared = (seen[:, None, walk] & seen[None, :, walk]).sum(-1)
-    joined, frontier = {0}, [0]
-    while frontier:
-        i = frontier.pop()
-        for j in np.flatnonzero(shared[i] >= 5):
-            if j not in joined:
-                joined.add(int(j))
-                frontier.append(int(j))
-    assert joined == set(range(C))
+    # The walk joins every camera to every other through frames two cameras share, seen
+    # within 60 degrees of the board's normal (beyond, ArUco markers are rarely read), for
+    # every seed tried: the session's path is drawn from the seed.
+    for seed in range(4):
+        rig = Rig.from_config(cfg.model_copy(update={"seed": seed}))
+        ok = rig.ground_truth().visible.sum(axis=2) >= 8
+        for c, cam in enumerate(rig.cameras):
+            R, t = rig.cam_from_board(cam)
+            cos = np.abs(np.einsum("fi,fi->f", R[:, :, 2], t)) / np.linalg.norm(t, axis=1)
+            ok[c] &= cos > np.cos(np.radians(60))
+        assert unreachable(ok & (rig.closeup_of < 0)) == [], seed
 
 
 def exact_studio(closeups=12):
