@@ -22,6 +22,7 @@ distortions that are not invertible over the image (a fold of the radial map ins
 from __future__ import annotations
 
 import functools
+import math
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -220,7 +221,10 @@ def radial_fold_radius(dist: np.ndarray, r_max: float = 20.0) -> float:
     radial factor stays positive. Cached per coefficients: every unprojection asks, and the
     scan over 200,001 radii took 13 ms (a studio's per-view poses called it thousands of times).
     """
-    return _fold_radius(tuple(float(d) for d in np.ravel(dist)), float(r_max))
+    dist = tuple(float(d) for d in np.ravel(dist))
+    if not all(map(math.isfinite, dist)):
+        return 0.0  # no coefficients, no valid region (NaN never equals itself: no caching)
+    return _fold_radius(dist, float(r_max))
 
 
 @functools.lru_cache(maxsize=256)

@@ -10,7 +10,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.text import Text
 
-from .config import ConfigError, load_rig
+from .config import ConfigError, load_rig, parse_rig
 from .rundir import locked
 
 console = Console(stderr=True)
@@ -113,10 +113,13 @@ def cmd_calibrate(args) -> int:
 
     base = Dataset.load(args.dataset)
     _warn(base.warnings)
+    # The dataset holds no calibration settings (they are not rendered data): the option's.
+    cfg = parse_rig({**base.config.model_dump(mode="json"),
+                     "calibration": {"intrinsics_views": args.intrinsics_views}},
+                    f"--intrinsics-views {args.intrinsics_views} for {args.dataset}")
     out = Path(args.out or Path(args.dataset) / "calibration")
     with locked(out):
-        trials = _run(base.config, out, args, args.dataset, first_dataset=base.root,
-                      with_rig=False)
+        trials = _run(cfg, out, args, args.dataset, first_dataset=base.root, with_rig=False)
         _report(trials, out, run_title(base.config))
     return _finish(trials, f"{out}/results.json, report.md; estimates in "
                            f"{out}/trials/*/calibrations")
@@ -186,6 +189,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "estimate against the ground truth.")
     c.add_argument("dataset", help="dataset directory written by `stereo-bench render`")
     c.add_argument("--out", help="output directory (default: DATASET/calibration)")
+    c.add_argument("--intrinsics-views", default="all", choices=["all", "closeups", "session"],
+                   help="the views each camera's intrinsics come from (a session dataset: its "
+                        "close-ups or its walk; default: %(default)s)")
     _trial_options(c)
     c.set_defaults(func=cmd_calibrate)
 

@@ -250,7 +250,9 @@ class Dataset:
             raise UnreadableFileError(f"{mpath}: schema_version {found!r}, expected "
                                       f"{SCHEMA_VERSION} (render it again)")
         try:
-            cfg = parse_rig(manifest["config"], str(mpath))
+            # Calibration settings are not rendered data (an older dataset may still hold them).
+            cfg = parse_rig({k: v for k, v in manifest["config"].items() if k != "calibration"},
+                            str(mpath))
             if manifest["fingerprint"] != dataset_fingerprint(cfg):
                 raise UnreadableFileError(f"{mpath}: its fingerprint does not match its config "
                                           f"(edited by hand?); render it again")

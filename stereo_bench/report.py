@@ -185,8 +185,9 @@ def _studio_markdown(agg: dict) -> list[str]:
     if cov:
         names = cov["cameras"]
         lines += ["", "Frames the rig calibration has of each pair of cameras together: the "
-                  "board detected by both with at least 4 points and a pose through each "
-                  "camera's estimate (diagonal: per camera; first trial, first method):", "",
+                  "board detected by both in a usable view (at least 8 points, not on a line) "
+                  "with a pose through each camera's estimate (diagonal: per camera; first "
+                  "trial, first method):", "",
                   "| | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
         for name, row in zip(names, cov["frames"]):
             lines.append(f"| {name} | " + " | ".join(str(v) for v in row) + " |")

@@ -132,8 +132,8 @@ def world_up(cameras: list[Camera]) -> np.ndarray:
     An upright camera's image x axis is horizontal however far it looks down, so up is the
     normal of the plane the cameras' x axes span (the least eigenvector of sum x x^T), on the
     side of their image -y axes. The mean of the -y axes alone tilts towards where cameras
-    that look down look (7 degrees on a half ring). When the x axes span no plane (parallel,
-    as for a pair looking one way), the mean -y axis is all there is.
+    that look down look (7 degrees on a half ring). When the x axes span no clear plane (nearly
+    parallel, as for a pair looking one way), the mean -y axis is all there is.
     """
     x = np.stack([c.R[0] for c in cameras])
     mean_up = -np.stack([c.R[1] for c in cameras]).mean(0)
@@ -141,10 +141,14 @@ def world_up(cameras: list[Camera]) -> np.ndarray:
         raise ValueError("cameras: their image 'up' directions disagree (e.g. a camera rolled "
                          "by 180 degrees), so the vertical is unknown; give every camera the "
                          "same up")
+    mean_up /= np.linalg.norm(mean_up)
     w, v = np.linalg.eigh(x.T @ x)
-    if w[1] - w[0] < 1e-3 * len(cameras):
-        return mean_up / np.linalg.norm(mean_up)
-    return v[:, 0] * np.sign(v[:, 0] @ mean_up)
+    normal = v[:, 0] * np.sign(v[:, 0] @ mean_up)
+    # Nearly parallel x axes (a pair, a bar) span a plane that any roll tilts: its normal may
+    # then lie anywhere near the optical axis, so keep the mean up unless the plane is clear.
+    if w[1] < 0.1 * len(cameras) or normal @ mean_up < 0.5:
+        return mean_up
+    return normal
 
 
 def ground_axes(up: np.ndarray, towards: np.ndarray | None = None

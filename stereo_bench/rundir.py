@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 #: Bumped when the meaning of any stage's output changes, so older markers are not reused.
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 
 _UMASK = os.umask(0)
 os.umask(_UMASK)

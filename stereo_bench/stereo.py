@@ -108,7 +108,7 @@ def initial_rig(board_R: np.ndarray, board_t: np.ndarray, seen: np.ndarray,
     log). Raises ValueError naming the cameras that cannot be connected to camera 0.
     """
     C = len(seen)
-    shared = (seen[:, None, :] & seen[None, :, :]).sum(axis=-1)
+    shared = covisibility(seen)
     R, t = np.tile(np.eye(3), (C, 1, 1)), np.zeros((C, 3))
     log = [{"camera": names[0], "parent": None, "shared_frames": int(seen[0].sum()),
             "kept_frames": None}] + [None] * (C - 1)

@@ -1,7 +1,7 @@
 """The synthetic studio the rig-reference tests share (test_colmap_ref, test_multiview_ref), built
 by the package: ``config.parse_rig`` of a studio, ``rig.Rig.from_config``, its ground truth.
 
-5 cameras (640 x 480, fx ~ 500, distortion; cameras 1 and 3 with k3) on a 3.5 m ring at heights
+5 cameras (640 x 480, fx ~ 500, distortion; cam2 and cam4 with k3) on a 3.5 m ring at heights
 1.8 / 2.0 m looking at the volume's centre, and a checkerboard of 9 x 6 inner corners at 60 mm
 carried through the volume for 60 frames of a calibration session (trajectory.kind: session),
 turning so that its front faces each camera in turn. A camera sees a frame when every point is

@@ -408,3 +408,42 @@ def test_the_pipeline_recovers_a_studio_exactly_from_exact_detections(tmp_path):
     own = int((gt.visible[0][ds.closeup_of == 0].sum(axis=1) >= 8).sum())
     assert own > 0 and report["calibration"]["zhang"]["cam1"]["views"] == own
     assert entry["frames_used"] > own
+
+
+def test_the_vertical_of_a_rolled_pair_stays_near_its_mean_up():
+    """Two nearly parallel x axes span a plane any roll tilts; the mean up is kept then."""
+    from stereo_bench.rig import world_up
+
+    cfg = load_rig(Path(__file__).parent.parent / "configs" / "paper" / "wide_pair.yaml")
+    roll = np.radians(5.0)
+    d = cfg.model_dump(mode="json")
+    d["cameras"][1]["up"] = [np.sin(roll), -np.cos(roll), 0.0]
+    up = world_up(parse_rig(d).cameras_true())
+    assert np.degrees(np.arccos(up @ [0.0, -1.0, 0.0])) < 5.0
+
+
+def test_calibrate_takes_the_intrinsics_views_of_a_session_dataset(tmp_path, capsys):
+    import json
+
+    from stereo_bench.cli import main
+    from stereo_bench.dataset import write_dataset
+
+    d = studio_dict()
+    d["environment"] = {"kind": "clean", "supersampling": 1}
+    d["trajectory"].update(frames=6, closeups=4)
+    write_dataset(parse_rig(d), tmp_path / "ds")
+    out = tmp_path / "cal"
+    rc = main(["calibrate", str(tmp_path / "ds"), "--out", str(out), "--methods", "zhang",
+               "--intrinsics-views", "closeups"])
+    assert rc in (0, 1)  # a tiny dataset may calibrate nothing; the setting is what counts
+    metrics = json.loads((out / "trials" / "seed_0" / "metrics.json").read_text())
+    assert metrics["intrinsics_views"] == "closeups"
+    assert "intrinsics from closeups views" in (out / "report.md").read_text()
+    # A spring dataset has no close-ups: refused, naming the option.
+    pair = load_rig(Path(__file__).parent.parent / "configs" / "quickstart.yaml").model_dump(
+        mode="json")
+    pair["trajectory"]["frames"] = 2
+    write_dataset(parse_rig(pair), tmp_path / "spring")
+    capsys.readouterr()
+    assert main(["calibrate", str(tmp_path / "spring"), "--intrinsics-views", "closeups"]) == 2
+    assert "--intrinsics-views closeups" in capsys.readouterr().err
