@@ -11,9 +11,8 @@ torn stage is redone. ``run`` holds the run directory's lock: a second run into 
 
 from __future__ import annotations
 
-import multiprocessing
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,6 +31,7 @@ from .rundir import (Notes, RunPaths, TrialPaths, UnreadableFileError, fingerpri
                      read_json, reusable, strict, write_json)
 from .stereo import aligned_rig_errors, calibrate_rig, planar_pose, rig_errors
 from .triangulate import triangulate
+from .workers import process_pool
 
 
 #: Shells of distance from the volume's centre in which RMSE_cal is also reported, mm.
@@ -241,7 +241,7 @@ def _run_trial_job(args):
 def run(cfg: RigConfig, out: Path, methods: list[str], trials: int = 1, workers: int = 1,
         progress=None, first_dataset: Path | None = None, with_rig: bool = True) -> list[dict]:
     """All trials (seeds cfg.seed, cfg.seed + 1, ...); with workers > 1 in spawned processes
-    (forking after OpenCV started its thread pool can deadlock: TRAPS.md). Holds the run
+    that end with this one (``workers.process_pool``). Holds the run
     directory's lock throughout (RunLockedError if another run holds it).
 
     ``first_dataset``: an existing dataset of ``cfg`` used as the first trial.
@@ -257,7 +257,7 @@ def run(cfg: RigConfig, out: Path, methods: list[str], trials: int = 1, workers:
                     progress(i + 1, trials)
             return results
         results = [None] * trials
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        with process_pool(workers) as pool:
             futures = {pool.submit(_run_trial_job, j): i for i, j in enumerate(jobs)}
             for n, fut in enumerate(as_completed(futures), 1):
                 results[futures[fut]] = fut.result()

@@ -17,10 +17,9 @@ and OUT/sweep.md hold one table for the whole grid, with the wall time and the t
 
 from __future__ import annotations
 
-import multiprocessing
 import time
 import traceback
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
@@ -29,6 +28,7 @@ from .config import (ConfigError, EnvironmentKind, Int, Name, PatternKind, RigCo
                      load_rig, load_yaml, parse_rig)
 from .report import fmt, run_title, write_report
 from .rundir import locked, write_json, write_text
+from .workers import process_pool
 
 
 class GridConfig(BaseModel):
@@ -114,8 +114,7 @@ def run_sweep(grid: GridConfig, configs: list[RigConfig], out: Path, workers: in
                 for c in configs]
         t0 = time.perf_counter()
         rows = {}
-        with ProcessPoolExecutor(workers,
-                                 mp_context=multiprocessing.get_context("spawn")) as pool:
+        with process_pool(workers) as pool:
             futures = [pool.submit(_run_config, j) for j in jobs]
             for n, fut in enumerate(as_completed(futures), 1):
                 row = fut.result()

@@ -5,6 +5,7 @@ import json
 import math
 import multiprocessing
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -312,3 +313,46 @@ def test_a_rerun_leaves_no_estimate_of_an_earlier_configuration(tmp_path):
     assert "error" in results(out)["trials"][0]["calibration"]["opencv"]["right"]
     assert not trial.calibration("opencv", "right").exists()
     assert trial.calibration("opencv", "left").is_file()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_workers_end_with_a_killed_run(tmp_path):
+    """A run killed by a signal releases its lock; its workers must not go on writing into the
+    run directory under the next run's lock."""
+    import signal
+    import subprocess
+    import time
+
+    rig = small_rig(tmp_path, frames=40)
+    out = tmp_path / "run"
+    run = subprocess.Popen([sys.executable, "-m", "stereo_bench.cli", str(rig), "--out",
+                            str(out), "--methods", "opencv", "--trials", "2", "--workers", "2"],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def children():
+        found = []
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                fields = stat.read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == run.pid:
+                found.append(int(stat.parent.name))
+        return found
+
+    deadline = time.monotonic() + 60
+    while len(children()) < 2 and time.monotonic() < deadline and run.poll() is None:
+        time.sleep(0.2)
+    workers = children()
+    assert len(workers) >= 2, "the run did not start its workers"
+    time.sleep(2)  # let the workers reach their initializer and start working
+    run.send_signal(signal.SIGKILL)
+    run.wait()
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and any(Path(f"/proc/{w}").exists() for w in workers):
+        time.sleep(0.2)
+    alive = [w for w in workers if Path(f"/proc/{w}").exists()
+             and "Z" not in Path(f"/proc/{w}/stat").read_text().rsplit(")", 1)[1].split()[0]]
+    for w in alive:
+        os.kill(w, signal.SIGKILL)
+    assert not alive, f"workers {alive} outlived their killed run"
