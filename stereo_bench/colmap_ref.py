@@ -74,7 +74,7 @@ import numpy as np
 
 from .calibrate.base import MIN_POINTS_PER_VIEW
 from .camera import Camera, matrix_to_rodrigues, rodrigues_to_matrix
-from .stereo import RigCalibration, covisibility, reprojection_rms, unreachable
+from .stereo import RigCalibration, covisibility, reprojection_rms, rig_cameras, unreachable
 
 PIXEL_SHIFT = 0.5  # COLMAP pixel coordinate = OpenCV pixel coordinate + PIXEL_SHIFT
 LOSSES = ("trivial", "soft_l1", "huber", "cauchy")
@@ -318,14 +318,9 @@ def colmap_rig_bundle(
     """
     t0 = time.perf_counter()
     pycolmap = _pycolmap()
-    cameras = list(cameras)
+    cameras = rig_cameras(cameras)
     C = len(cameras)
-    if C < 2:
-        raise ValueError(f"cameras: expected at least 2 cameras, got {C}")
-    for c, cam in enumerate(cameras):
-        if not isinstance(cam, Camera):
-            raise ValueError(f"cameras[{c}]: expected a stereo_bench Camera, got "
-                             f"{type(cam).__name__}")
+    for cam in cameras:
         colmap_model(cam)  # refuses skew
     names = [cam.name for cam in cameras]
     img = np.asarray(image_points, dtype=np.float64)

@@ -99,7 +99,7 @@ import numpy as np
 
 from .calibrate.base import MIN_POINTS_PER_VIEW
 from .camera import Camera, matrix_to_rodrigues, rodrigues_to_matrix
-from .stereo import RigCalibration, covisibility, reprojection_rms, unreachable
+from .stereo import RigCalibration, covisibility, reprojection_rms, rig_cameras, unreachable
 
 ROBUST_SCALE_PX2 = 30.0  # OpenCV's per-point weight exp(-|e|^2 / ROBUST_SCALE_PX2)
 # calibrateCamera flags that would give more than the project's 8 distortion coefficients, or
@@ -135,14 +135,9 @@ def full_views(cameras: Sequence[Camera], image_points: np.ndarray, seen: np.nda
 
 
 def _check_inputs(cameras, object_points, image_points, seen, fix_intrinsics, intrinsics_flags):
-    cameras = list(cameras)
+    cameras = rig_cameras(cameras)
     C = len(cameras)
-    if C < 2:
-        raise ValueError(f"cameras: expected at least 2 cameras, got {C}")
     for c, cam in enumerate(cameras):
-        if not isinstance(cam, Camera):
-            raise ValueError(f"cameras[{c}]: expected a stereo_bench Camera, got "
-                             f"{type(cam).__name__}")
         if cam.skew != 0:
             raise ValueError(f"cameras[{c}] ({cam.name!r}): skew {cam.skew!r} is not 0; "
                              f"OpenCV's pinhole model has none")

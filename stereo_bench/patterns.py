@@ -103,6 +103,8 @@ class Pattern(abc.ABC):
 
     kind: ClassVar[str]
     code: ClassVar[str]
+    # Whether the back carries a print too (a field of the boards that can: ChArUco).
+    two_sided = False
 
     # White quiet zone around the printed features, on every side. A field's metadata "min" is
     # its least value (default: any positive number).

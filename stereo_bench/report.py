@@ -122,6 +122,15 @@ def aggregate(trials: list[dict]) -> dict:
     return agg
 
 
+def _header(*titles: str) -> list[str]:
+    """A Markdown table's header and separator lines."""
+    return ["| " + " | ".join(titles) + " |", "|" + "---|" * len(titles)]
+
+
+def _titles(columns: list) -> list[str]:
+    return [t for t, _ in columns]
+
+
 def _camera_value(entry: dict, cam: str, path: tuple) -> float:
     group, key = path
     block = entry.get(group) or {}
@@ -163,8 +172,7 @@ def _studio_markdown(agg: dict) -> list[str]:
              "similarity that best maps the estimated camera centres onto the true ones (what "
              "is left once the choice of reference and the scale are forgiven), beside the "
              "reprojection error: a low RMS px does not mean a right geometry.", "",
-             "| camera | method | " + " | ".join(t for t, _ in RIG_CAMERA_COLUMNS) + " |",
-             "|---|---|" + "---|" * len(RIG_CAMERA_COLUMNS)]
+             *_header("camera", "method", *_titles(RIG_CAMERA_COLUMNS))]
     for m, cams in agg["rig_cameras"].items():
         for cam, row in cams.items():
             lines.append(f"| {cam} | {m} | "
@@ -175,8 +183,7 @@ def _studio_markdown(agg: dict) -> list[str]:
         def label(lo, hi):
             return f"{lo / 1000:g}-{hi / 1000:g} m" if hi is not None else f">{lo / 1000:g} m"
         lines += ["", "RMSE_cal (mm) by distance of the board's points from the volume's "
-                  "centre:", "", "| method | " + " | ".join(label(*s) for s in shells) + " |",
-                  "|---|" + "---|" * len(shells)]
+                  "centre:", "", *_header("method", *(label(*s) for s in shells))]
         for m, rows in agg["rig_regions"].items():
             by = {(r["from_mm"], r["to_mm"]): r["rmse_cal_mm"] for r in rows}
             lines.append(f"| {m} | " + " | ".join(
@@ -188,7 +195,7 @@ def _studio_markdown(agg: dict) -> list[str]:
                   "board detected by both in a usable view (at least 8 points, not on a line) "
                   "with a pose through each camera's estimate (diagonal: per camera; first "
                   "trial, first method):", "",
-                  "| | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+                  *_header("", *names)]
         for name, row in zip(names, cov["frames"]):
             lines.append(f"| {name} | " + " | ".join(str(v) for v in row) + " |")
     return lines
@@ -215,8 +222,7 @@ def markdown(agg: dict, title: str) -> str:
     lines = [f"# {title}", "", f"Mean ± std over {agg['trials']} trial(s). Calibration: {said}.",
              "",
              "## Detection against ground truth", "",
-             "| camera | " + " | ".join(t for t, _ in DETECTION_COLUMNS) + " |",
-             "|---|" + "---|" * len(DETECTION_COLUMNS)]
+             *_header("camera", *_titles(DETECTION_COLUMNS))]
     for cam, row in agg["detection"].items():
         lines.append(f"| {cam} | " + " | ".join(fmt(row[t]) for t, _ in DETECTION_COLUMNS) + " |")
     lines += ["", "## Calibration against ground truth (layout of the paper's Tables 2 and 3)", "",
@@ -224,8 +230,7 @@ def markdown(agg: dict, title: str) -> str:
               "unitless coefficients, so compare it only with the paper. `proj. diff` is how far "
               "the estimate projects the true camera's rays over the whole image, the error a "
               "user of the calibration sees.", "",
-              "| camera | method | " + " | ".join(t for t, _ in CALIBRATION_COLUMNS) + " |",
-              "|---|---|" + "---|" * len(CALIBRATION_COLUMNS)]
+              *_header("camera", "method", *_titles(CALIBRATION_COLUMNS))]
     failures, invalid = [], []
     for m, cams in agg["calibration"].items():
         for cam, row in cams.items():
@@ -246,8 +251,7 @@ def markdown(agg: dict, title: str) -> str:
                   "RMSE_cal: the board's feature points triangulated through each method's "
                   "calibrated rig against their true positions in the reference camera's frame. "
                   "Rig errors are of the worst non-reference camera.", "",
-                  "| method | " + " | ".join(t for t, _ in RIG_COLUMNS) + " |",
-                  "|---|" + "---|" * len(RIG_COLUMNS)]
+                  *_header("method", *_titles(RIG_COLUMNS))]
         for m, row in agg["rig"].items():
             lines.append(f"| {m} | " + " | ".join(fmt(row[t]) for t, _ in RIG_COLUMNS) + " |")
             failures += [f"- rig / {m}: {msg}" for msg in row["failures"]]

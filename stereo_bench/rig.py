@@ -331,7 +331,7 @@ class Rig:
             # two-sided board carries the corners).
             normal_cam = R[:, :, 2]
             front = np.einsum("fi,fni->fn", normal_cam, Pc) > 0
-            if getattr(self.pattern, "two_sided", False):
+            if self.pattern.two_sided:
                 front = np.ones_like(front)
             z = Pc[..., 2]
             ahead = z > 1e-6

@@ -282,6 +282,19 @@ class RigStart:
     log: list[dict]
 
 
+def rig_cameras(cameras: Sequence[Camera]) -> list[Camera]:
+    """The cameras of a rig calibration as a list, refused (ValueError naming the entry) unless
+    there are two or more stereo_bench Cameras."""
+    cameras = list(cameras)
+    if len(cameras) < 2:
+        raise ValueError(f"cameras: expected at least 2 cameras, got {len(cameras)}")
+    for c, cam in enumerate(cameras):
+        if not isinstance(cam, Camera):
+            raise ValueError(f"cameras[{c}]: expected a stereo_bench Camera, got "
+                             f"{type(cam).__name__}")
+    return cameras
+
+
 def rig_start(cameras: Sequence[Camera], image_points, board_rvecs, board_tvecs,
               found=None) -> RigStart:
     """The start of a rig calibration from each camera's own board poses (module notes, 1).
@@ -292,11 +305,10 @@ def rig_start(cameras: Sequence[Camera], image_points, board_rvecs, board_tvecs,
     at least MIN_POINTS_PER_VIEW points. Shared by ``calibrate_rig`` and the pycolmap reference
     (colmap_ref.py), so that both solvers start from the same values.
     """
+    cameras = rig_cameras(cameras)
     C = len(cameras)
     img = np.asarray(image_points, dtype=np.float64)
     rv, tv = np.asarray(board_rvecs, dtype=np.float64), np.asarray(board_tvecs, dtype=np.float64)
-    if C < 2:
-        raise ValueError(f"rig calibration: expected at least 2 cameras, got {C}")
     if img.ndim != 4 or img.shape[0] != C or img.shape[-1] != 2:
         raise ValueError(f"image_points: expected shape (C={C}, F, N, 2), got {img.shape}")
     F = img.shape[1]

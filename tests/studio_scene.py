@@ -79,3 +79,20 @@ def board_poses(cams, obj, img):
     for c, f in zip(*np.nonzero(found)):
         rv[c, f], tv[c, f] = planar_pose(cams[c], obj, img[c, f])
     return rv, tv, found
+
+
+def exact_views(rig: Rig):
+    """The noise-free problem: (true cameras, board points, image points, seen (C,F), the true
+    start of ``true_start``)."""
+    img = observe(rig)
+    seen = np.all(np.isfinite(img), axis=(-1, -2))
+    return rig.cameras, rig.pattern.object_points(), img, seen, true_start(rig)
+
+
+def noisy_views(rig: Rig, sigma: float = 0.3, seed: int = 1):
+    """``sigma`` px of noise and each camera's own cam_from_board (planar_pose), as a
+    calibration starts: (true cameras, board points, image points, rvecs, tvecs, found)."""
+    cams, obj = rig.cameras, rig.pattern.object_points()
+    img = observe(rig, sigma, seed)
+    rv, tv, found = board_poses(cams, obj, img)
+    return cams, obj, img, found, rv, tv

@@ -16,8 +16,8 @@ from stereo_bench import colmap_ref  # noqa: E402
 from stereo_bench.colmap_ref import (colmap_rig_bundle, rig_reconstruction,  # noqa: E402
                                      to_colmap_camera)
 from stereo_bench.stereo import calibrate_rig, rig_errors, rig_start  # noqa: E402
-from studio_scene import (board_poses, intrinsics_only, observe, perturbed,  # noqa: E402
-                          studio, true_start)
+from studio_scene import (exact_views, intrinsics_only, noisy_views, perturbed,  # noqa: E402
+                          studio)
 
 
 @pytest.fixture(scope="module")
@@ -27,18 +27,13 @@ def rig():
 
 @pytest.fixture(scope="module")
 def exact(rig):
-    img = observe(rig)
-    seen = np.all(np.isfinite(img), axis=(-1, -2))
-    return rig.cameras, rig.pattern.object_points(), img, seen, true_start(rig)
+    return exact_views(rig)
 
 
 @pytest.fixture(scope="module")
 def noisy(rig):
     """0.3 px noise; each camera's own cam_from_board (planar_pose), as a calibration starts."""
-    cams, obj = rig.cameras, rig.pattern.object_points()
-    img = observe(rig, 0.3, seed=1)
-    rv, tv, found = board_poses(cams, obj, img)
-    return cams, obj, img, found, rv, tv
+    return noisy_views(rig)
 
 
 def test_studio_is_a_real_studio(exact):

@@ -16,8 +16,7 @@ from stereo_bench import multiview_ref  # noqa: E402
 from stereo_bench.camera import project_points  # noqa: E402
 from stereo_bench.multiview_ref import board_unit_mm, opencv_multiview  # noqa: E402
 from stereo_bench.stereo import calibrate_rig, rig_errors, rig_start  # noqa: E402
-from studio_scene import (board_poses, intrinsics_only, observe, studio,  # noqa: E402
-                          true_start)
+from studio_scene import exact_views, intrinsics_only, noisy_views, studio  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -27,17 +26,13 @@ def rig():
 
 @pytest.fixture(scope="module")
 def exact(rig):
-    img = observe(rig)
-    seen = np.all(np.isfinite(img), axis=(-1, -2))
-    return rig.cameras, rig.pattern.object_points(), img, seen, true_start(rig)
+    return exact_views(rig)
 
 
 @pytest.fixture(scope="module")
 def noisy(rig):
     """0.3 px noise; OpenCV's rig and calibrate_rig's (from each camera's own planar_pose)."""
-    cams, obj = rig.cameras, rig.pattern.object_points()
-    img = observe(rig, 0.3, seed=1)
-    rv, tv, found = board_poses(cams, obj, img)
+    cams, obj, img, found, rv, tv = noisy_views(rig)
     intr = intrinsics_only(cams)
     ours = calibrate_rig(intr, obj, img, rv, tv, found)
     return cams, obj, img, found, rv, tv, ours, opencv_multiview(intr, obj, img, found)

@@ -322,7 +322,7 @@ class AnalyticRenderer:
         texel = st.texel_per_sample * max(sample_mm, 1e-9)
         cap = math.sqrt(st.max_texture_texels / float(np.prod(self._size)))
         k = math.floor(_LEVELS_PER_OCTAVE * math.log2(min(1.0 / texel, cap)))
-        printed_back = not front and getattr(self.pattern, "two_sided", False)
+        printed_back = not front and self.pattern.two_sided
         key = (k, printed_back)
         if key not in self._levels:
             self._levels[key] = self._rasterize(2.0 ** (k / _LEVELS_PER_OCTAVE), printed_back)
