@@ -413,6 +413,9 @@ def describe(err: ValidationError, source: str, what: str = "rig configuration")
             msg = "missing required field"
         elif e["type"] == "value_error":
             msg = msg.removeprefix("Value error, ")
+            if msg.startswith(f"{path}."):  # the message names the field inside this one
+                lines.append(f"  {msg}")
+                continue
         else:
             shown = repr(e.get("input"))
             msg += f", got {shown if len(shown) <= 60 else shown[:57] + '...'}"
