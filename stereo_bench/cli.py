@@ -142,21 +142,25 @@ def cmd_run(args) -> int:
 def cmd_sweep(args) -> int:
     from .sweep import load_grid, run_sweep
 
-    grid, configs = load_grid(args.grid)
+    sweep = load_grid(args.grid)
+    grid, configs = sweep.grid, sweep.configurations
     out = Path(args.out or Path("out") / grid.name)
+    console.print(f"{len(configs)} configurations x {sweep.trials} trial(s) "
+                  f"({sweep.trials_reason})", markup=False, highlight=False)
     with progress_bar() as bar:
         task = bar.add_task(f"{grid.name}: configurations", total=len(configs))
-        result = run_sweep(grid, configs, out, args.workers,
+        result = run_sweep(sweep, out, args.workers,
                            lambda d, n: bar.update(task, completed=d, total=n))
-    failed = [r["name"] for r in result["configurations"] if "error" in r]
     stages = result["stage_time_s"]
     console.print(f"{len(configs)} configurations in {result['wall_time_s']:.0f} s wall time "
                   f"with {args.workers} worker(s); summed stage times: "
                   + ", ".join(f"{k[:-2]} {v:.0f} s" for k, v in stages.items())
                   + f"; dominant stage: {max(stages, key=stages.get)[:-2]}")
-    if failed:
-        console.print(f"[yellow]{len(failed)} configuration(s) failed (see sweep.md): {failed}")
-    console.print(f"wrote {out}/sweep.json and {out}/sweep.md")
+    if result["failed"]:
+        say("warning", "yellow", f"{len(result['failed'])} configuration(s) failed (see "
+                                 f"sweep.md): {', '.join(result['failed'])}")
+    console.print(f"wrote {out}/sweep.json, {out}/sweep.md and {len(result['curves'])} "
+                  f"figure(s) in {out}/curves", markup=False, highlight=False)
     return 0
 
 
@@ -206,9 +210,11 @@ def build_parser() -> argparse.ArgumentParser:
     u.set_defaults(func=cmd_run)
 
     w = sub.add_parser("sweep", help="run a grid of configurations (e.g. the paper's 40)",
-                       description="Cross rig files with patterns and environments (GRID.yaml, "
-                                   "see configs/grids/paper.yaml) and run each configuration in "
-                                   "parallel processes; one table for the whole grid.")
+                       description="Cross rig files with axes of rig-file fields (GRID.yaml, "
+                                   "see docs/sweeps.md and configs/grids/) and run each "
+                                   "configuration in parallel processes; one table for the whole "
+                                   "grid, curves with 95 % intervals over seeds and paired "
+                                   "comparisons of methods and patterns.")
     w.add_argument("grid", help="grid YAML file")
     w.add_argument("--out", help="output directory (default: out/<grid name>)")
     w.add_argument("--workers", type=int, default=2,

@@ -261,3 +261,81 @@ def plot_run(out: Path, trials: list[dict], agg: dict) -> list[Path]:
             *([plot_studio(trial, ds, folder / "studio.png")]
               if ds.config.trajectory.kind == "session" else []),
             *plot_projection_maps(trial, ds, methods, folder)]
+
+
+def _spans_decades(values) -> bool:
+    """Positive values whose largest is at least ten times their smallest: a log scale."""
+    v = np.array([x for x in values if x is not None and np.isfinite(x)], float)
+    return len(v) > 1 and (v > 0).all() and v.max() >= 10 * v.min()
+
+
+def plot_sweep_curve(curve: dict, path: Path) -> Path:
+    """One figure of a sweep's curve (``sweep_stats.curves``): a panel per metric, the mean over
+    trials against the axis value with its 95 % Student-t interval as error bars, a line per
+    method (or pattern). A numeric axis is drawn to scale; a categorical or list-valued one as
+    evenly spaced categories (labelled by the value's text), the lines nudged apart so that
+    their intervals do not hide each other."""
+    import json
+
+    metrics = list(curve["metrics"].values())
+    cols = min(len(metrics), 2)
+    rows = -(-len(metrics) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 3.8 * rows), squeeze=False)
+    for ax in axes.ravel()[len(metrics):]:
+        ax.set_visible(False)
+    values = curve["values"]
+    numeric = curve["scale"] == "numeric"
+    xs = np.array(values, float) if numeric else np.arange(len(values), dtype=float)
+    log_x = numeric and _spans_decades(xs)
+    for ax, metric in zip(axes.ravel(), metrics):
+        lines = metric["lines"]
+        means = [p.get("mean") for ln in lines for p in ln["points"]]
+        log_y = metric["unit"] != "share of frames" and _spans_decades(means)
+        # An interval reaching below zero cannot be drawn on a log axis: it is cut at a fifth
+        # of the panel's smallest mean, and the panel says so.
+        floor = 0.2 * min(m for m in means if m is not None and m > 0) if log_y else None
+        cut = False
+        for k, ln in enumerate(lines):
+            pts = ln["points"]
+            keep = [i for i, p in enumerate(pts) if p["n"] > 0 and p["mean"] is not None
+                    and np.isfinite(p["mean"])]
+            if not keep:
+                continue
+            mean = np.array([pts[i]["mean"] for i in keep], float)
+            low = np.array([pts[i]["ci_low"] if pts[i]["n"] > 1 and pts[i]["ci_low"] is not None
+                            else pts[i]["mean"] for i in keep], float)
+            high = np.array([pts[i]["ci_high"] if pts[i]["n"] > 1 and pts[i]["ci_high"]
+                             is not None else pts[i]["mean"] for i in keep], float)
+            if log_y and (low < floor).any():
+                low, cut = np.maximum(low, floor), True
+            x = xs[keep]
+            if not numeric:
+                x = x + (k - (len(lines) - 1) / 2) * min(0.3 / max(len(lines), 1), 0.08)
+            ax.errorbar(x, mean, yerr=[mean - low, high - mean], marker="o", ms=4, capsize=3,
+                        lw=1.2, label=ln["label"])
+        if log_y:
+            ax.set_yscale("log")
+        if log_x:
+            ax.set_xscale("log")
+        if metric["unit"] == "share of frames":
+            ax.set_ylim(-0.03, 1.03)
+        if not numeric:
+            ax.set_xticks(xs, [v if isinstance(v, str) else json.dumps(v) for v in values],
+                          rotation=20 if len(values) > 4 else 0, fontsize=8)
+        ax.set_xlabel(curve["axis"])
+        ax.set_ylabel(f"{metric['title']} ({metric['unit']})")
+        ax.set_title(f"{metric['title']} ({metric['better']} is better)"
+                     + (";\nintervals below the axis cut" if cut else ""), fontsize=9)
+        ax.grid(True, alpha=0.3)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
+        else:
+            ax.text(0.5, 0.5, "no value (failed or not run)", ha="center", va="center",
+                    transform=ax.transAxes, fontsize=8)
+    held = ", ".join(f"{k} = {v}" for k, v in curve["held"].items())
+    fig.suptitle(f"{held}: mean over trials, 95 % Student-t interval", fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
