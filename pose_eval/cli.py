@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 
-from stereo_bench.calibrate import available_methods
+from stereo_bench.calibrate import available_methods, parse_method
 from stereo_bench.config import ConfigError, load_rig
 from stereo_bench.cli import say
 from stereo_bench.pipeline import Trial, load_run
@@ -39,7 +39,6 @@ from .report import (COST, FLOOR, STAGES, aggregate, headline_stage, markdown, p
 from .scene import in_true_world, make_scene, rig_axes, run_description
 
 console = Console(stderr=True)
-CALIB_CHOICES = ("gt", *available_methods(), "all")
 NOISE_PX = 1.0
 MAX_NOISE_PX = 100.0
 MAX_DISTANCE_MM = 100_000.0  # 100 m: a person is then about 20 px tall through a 1000 px lens
@@ -49,6 +48,16 @@ MIN_DETECTED = 0.5
 DEFAULT_RUN = "out/quickstart"
 
 
+def calib_choice(text: str) -> str:
+    """--calib: gt, all or any calibration method name (BASE-MODEL variants too)."""
+    if text not in ("gt", "all"):
+        try:
+            parse_method(text)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(f"{e}; or gt, all") from None
+    return text
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="pose-eval",
@@ -56,9 +65,10 @@ def build_parser() -> argparse.ArgumentParser:
                     "(MPJPE), with the exact pose known: keypoints seen through the true cameras "
                     "are triangulated through the method's estimated cameras. The gt column "
                     "(true cameras) is always reported beside the chosen method.")
-    p.add_argument("--calib", required=True, choices=CALIB_CHOICES,
-                   help="calibration method whose estimated rig triangulates; 'gt' the true "
-                        "cameras only; 'all' every method in the run plus gt")
+    p.add_argument("--calib", required=True, type=calib_choice, metavar="METHOD",
+                   help="calibration method whose estimated rig triangulates ("
+                        f"{', '.join(available_methods())} or BASE-MODEL, e.g. zhang-brown); "
+                        "'gt' the true cameras only; 'all' every method in the run plus gt")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--run", metavar="RUN_DIR",
                      help="a `stereo-bench RIG.yaml --out RUN_DIR` run: true cameras and every "

@@ -93,9 +93,14 @@ class CalibrationResult:
 class Calibrator(Protocol):
     """``model_parameters``: the parameters of the camera core's OpenCV model (camera.py's
     INTRINSIC_NAMES + DIST_NAMES) that the method estimates, which a rig's bundle adjustment
-    may refine with it; None when the method's own model is not a subset of OpenCV's."""
+    may refine with it; None when the method's own model is not a subset of OpenCV's.
+    ``lens_models``: the models of lens_models.py the method can fit (as ``BASE-MODEL``, passed
+    to its constructor as ``lens_model``); empty when it fits only its own. ``own_model``: what
+    plain ``BASE`` fits, in a few words (for messages)."""
 
     name: str
     model_parameters: tuple[str, ...] | None
+    lens_models: tuple[str, ...]
+    own_model: str
 
     def calibrate(self, obs: Observations) -> CalibrationResult: ...

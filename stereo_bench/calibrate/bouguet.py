@@ -36,9 +36,11 @@ import numpy as np
 from ..camera import matrix_to_rodrigues, undistort_normalized
 from .base import CalibrationResult, Observations
 from .homography import fit_homography
+from .lens_models import LENS_MODELS, free_coefficients, method_name
 from .refine import OpenCVModel, free_mask, refine
 
 KC_NAMES = ("k1", "k2", "p1", "p2", "k3")
+EST_DIST = (True, True, True, True, False)  # the toolbox's default: k3 fixed at 0
 
 
 def init_focal(Hs: list[np.ndarray], cc: np.ndarray, two_focals: bool = False) -> np.ndarray:
@@ -76,22 +78,38 @@ def extrinsic_init(camera, board_xy: np.ndarray, image_xy: np.ndarray):
 
 
 class BouguetCalibrator:
-    name = "bouguet"
+    """The toolbox's calibration (module docstring). The distortion it frees is either the
+    toolbox's ``est_dist`` (5 flags over KC_NAMES; default k1, k2, p1, p2) or a ``lens_model``
+    of lens_models.py (``bouguet-brown`` is the toolbox with est_dist = [1 1 1 1 1];
+    ``bouguet-rational`` also frees k4..k6, which the toolbox's kc does not have). Every
+    coefficient starts at 0, as in the toolbox, so the init does not depend on the model."""
 
-    def __init__(self, est_dist=(True, True, True, True, False), est_alpha: bool = False,
+    lens_models = tuple(LENS_MODELS)
+    own_model = "the toolbox's default model (k1, k2, p1, p2; k3 fixed at 0)"
+
+    def __init__(self, est_dist=None, est_alpha: bool = False,
                  two_focals_init: bool = False, recompute_extrinsic: bool = True,
-                 max_recompute: int = 10, max_iter: int = 100):
-        if len(est_dist) != 5:
-            raise ValueError(f"bouguet: est_dist needs 5 flags for {KC_NAMES}, got {est_dist}")
-        self.est_dist = tuple(bool(e) for e in est_dist)
+                 max_recompute: int = 10, max_iter: int = 100, lens_model: str | None = None):
+        if lens_model is not None:
+            if est_dist is not None:
+                raise ValueError(f"bouguet: est_dist {est_dist} and lens_model {lens_model!r} "
+                                 f"both choose the distortion; give one of them")
+            dist = free_coefficients(lens_model)
+        else:
+            est_dist = EST_DIST if est_dist is None else est_dist
+            if len(est_dist) != 5:
+                raise ValueError(f"bouguet: est_dist needs 5 flags for {KC_NAMES}, "
+                                 f"got {est_dist}")
+            dist = tuple(n for n, e in zip(KC_NAMES, est_dist) if e)
+        self.name = method_name("bouguet", lens_model)
+        self.est_dist = tuple(n in dist for n in KC_NAMES)
         self.est_alpha = est_alpha
         self.two_focals_init = two_focals_init
         self.recompute_extrinsic = recompute_extrinsic
         self.max_recompute = max_recompute
         self.max_iter = max_iter
         self.model = OpenCVModel()
-        free = (["fx", "fy", "cx", "cy"] + (["skew"] if est_alpha else [])
-                + [n for n, e in zip(KC_NAMES, self.est_dist) if e])
+        free = ["fx", "fy", "cx", "cy"] + (["skew"] if est_alpha else []) + list(dist)
         self.free = free_mask(self.model.param_names, free)
         self.model_parameters = tuple(free)
 
@@ -133,6 +151,7 @@ class BouguetCalibrator:
             rvecs = np.where(better[:, None], fresh.rvecs, res.rvecs)
             tvecs = np.where(better[:, None], fresh.tvecs, res.tvecs)
         log = {"method": self.name, "est_dist": list(self.est_dist), "est_alpha": self.est_alpha,
+               "free": list(self.model_parameters),
                "init": {"fc": fc.tolist(), "cc": cc.tolist()},
                "views_reinitialized": reinitialized,
                **res.log(), "time_s": time.perf_counter() - t0,

@@ -1,9 +1,11 @@
 """OpenCV's cv2.calibrateCamera as a reference and baseline (not one of the paper's algorithms).
 
-"opencv": 5 coefficients (k1, k2, p1, p2, k3), default flags. "opencv-rational": 8 coefficients
-(CALIB_RATIONAL_MODEL), whose k1..k6 planar targets cannot identify (TRAPS.md): compare it in
-projection space, not coefficient by coefficient. Inputs go in as float32, which alone rounds
-image points by up to ~7e-5 px on a 4096 px camera and bounds agreement with exact methods.
+"opencv": 5 coefficients (k1, k2, p1, p2, k3), default flags. "opencv-MODEL" frees exactly the
+lens model's coefficients (lens_models.py) through calibrateCamera's flags: "opencv-radial2" is
+CALIB_FIX_K3 | CALIB_ZERO_TANGENT_DIST, "opencv-rational" CALIB_RATIONAL_MODEL (8 coefficients,
+whose k1..k6 planar targets cannot identify, TRAPS.md: compare it in projection space, not
+coefficient by coefficient). Inputs go in as float32, which alone rounds image points by up to
+~7e-5 px on a 4096 px camera and bounds agreement with exact methods.
 (calibrateCameraExtended would add OpenCV's parameter standard deviations, but took 0.6 s
 instead of 0.13 s on 127 views: the reference times the call users make.)
 """
@@ -17,20 +19,39 @@ import numpy as np
 
 from ..camera import Camera
 from .base import CalibrationResult, Observations
+from .lens_models import LENS_MODELS, free_coefficients, method_name
 from .refine import OpenCVModel, free_mask, intrinsic_information, rank_info
 
-# The parameters cv2.calibrateCamera estimates (it never estimates skew in the pinhole model).
-_FREE = {False: ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"),
-         True: ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")}
+
+def calibrate_camera_flags(free_dist) -> int:
+    """calibrateCamera flags that free exactly the coefficients ``free_dist`` (the others stay 0:
+    without an initial guess OpenCV starts every coefficient at 0, and a fixed one stays there)."""
+    free = set(free_dist)
+    rational = bool(free & {"k4", "k5", "k6"})
+    flags = cv2.CALIB_RATIONAL_MODEL if rational else 0
+    if not free & {"p1", "p2"}:
+        flags |= cv2.CALIB_ZERO_TANGENT_DIST
+    elif not {"p1", "p2"} <= free:
+        raise ValueError(f"opencv: p1 and p2 are freed or fixed together, got {sorted(free)}")
+    # Without CALIB_RATIONAL_MODEL, k4..k6 are not part of the model and need no flag.
+    for i in range(1, 7 if rational else 4):
+        if f"k{i}" not in free:
+            flags |= getattr(cv2, f"CALIB_FIX_K{i}")
+    return flags
 
 
 class OpenCVCalibrator:
-    def __init__(self, rational: bool = False, flags: int = 0):
-        """``flags`` are OR-ed into calibrateCamera's (e.g. CALIB_FIX_K3)."""
-        self.name = "opencv-rational" if rational else "opencv"
-        self.rational = rational
-        self.model_parameters = _FREE[rational]
-        self.flags = int(flags) | (cv2.CALIB_RATIONAL_MODEL if rational else 0)
+    lens_models = tuple(LENS_MODELS)
+    own_model = "OpenCV's default model (k1, k2, p1, p2, k3)"
+
+    def __init__(self, flags: int = 0, lens_model: str | None = None):
+        """``lens_model``: None is OpenCV's default 5 coefficients (as "brown"). ``flags`` are
+        OR-ed into calibrateCamera's (e.g. CALIB_FIX_K3); model_parameters stays the model's."""
+        self.name = method_name("opencv", lens_model)
+        dist = free_coefficients("brown" if lens_model is None else lens_model)
+        # cv2.calibrateCamera never estimates skew in the pinhole model.
+        self.model_parameters = ("fx", "fy", "cx", "cy", *dist)
+        self.flags = int(flags) | calibrate_camera_flags(dist)
 
     def calibrate(self, obs: Observations) -> CalibrationResult:
         t0 = time.perf_counter()
@@ -52,11 +73,11 @@ class OpenCVCalibrator:
         # OpenCV does not say when its problem is rank deficient (the rational model from planar
         # views, TRAPS.md): check the information of its free intrinsics at its solution.
         model = OpenCVModel()
-        free = free_mask(model.param_names, _FREE[self.rational])
+        free = free_mask(model.param_names, self.model_parameters)
         info = intrinsic_information(model, model.params_of(camera), free, obs.object_points,
                                      rvecs, tvecs)
         log = {"method": self.name, "opencv_version": cv2.__version__, "flags": self.flags,
                "rms_px": float(rms), "time_s": elapsed,
-               "rank": rank_info(info, list(_FREE[self.rational])),
+               "rank": rank_info(info, list(self.model_parameters)),
                "notes": "cv2.calibrateCamera on float32 points"}
         return CalibrationResult(camera, rvecs, tvecs, log)

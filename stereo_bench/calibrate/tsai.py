@@ -338,6 +338,10 @@ class TsaiCalibrator:
     # model its estimate is converted to, so no OpenCV parameters stand for it in a rig's
     # bundle adjustment: there its intrinsics stay as estimated.
     model_parameters = None
+    # For the same reason it fits none of the lens models of lens_models.py.
+    lens_models = ()
+    own_model = ("Tsai's own model (k1 radial on distorted coordinates as kappa1, scale factor "
+                 "sx, principal point at the image centre)")
 
     def __init__(self, sx: float | None = None, free_principal_point: bool = False,
                  max_iter: int = 100):

@@ -9,7 +9,8 @@ Z. Zhang, "A flexible new technique for camera calibration", IEEE PAMI 22(11), 2
 3. extrinsics from K^-1 H (section 3.1), the rotation made orthogonal by SVD (Appendix C);
 4. radial k1, k2 by linear least squares on the residual pixels (section 3.3, eq. 13);
 5. maximum-likelihood refinement of all parameters and poses (eq. 14) through ``refine.py``,
-   with Zhang's model: OpenCVModel with only fx, fy, cx, cy, skew, k1, k2 free.
+   with Zhang's model: OpenCVModel with only fx, fy, cx, cy, skew, k1, k2 free (``zhang``), or
+   with another lens model's coefficients free instead of k1, k2 (``zhang-brown`` etc.).
 
 Skew gamma is estimated by default, as in the paper; ``zero_skew=True`` imposes gamma = 0 with
 Zhang's extra constraint B12 = 0 (section 3.1) and keeps it fixed in the refinement. Estimating
@@ -26,6 +27,7 @@ import numpy as np
 from ..camera import Camera, matrix_to_rodrigues, nearest_rotation
 from .base import CalibrationResult, Observations
 from .homography import fit_homography
+from .lens_models import LENS_MODELS, free_coefficients, method_name
 from .refine import OpenCVModel, free_mask, refine
 
 
@@ -96,13 +98,20 @@ def radial_from_linear(K, rvecs, tvecs, obs: Observations) -> np.ndarray:
 
 
 class ZhangCalibrator:
-    name = "zhang"
+    """Zhang's algorithm (module docstring). ``lens_model`` (lens_models.py; None: Zhang's k1, k2)
+    chooses the coefficients free in step 5: the closed form and eq. 13 stay as published, and
+    the coefficients they do not estimate (p1, p2, k3..k6) start the refinement at 0."""
 
-    def __init__(self, zero_skew: bool = False, max_iter: int = 100):
+    lens_models = tuple(LENS_MODELS)
+    own_model = "Zhang's model (fx, fy, cx, cy, skew, k1, k2)"
+
+    def __init__(self, zero_skew: bool = False, max_iter: int = 100,
+                 lens_model: str | None = None):
+        self.name = method_name("zhang", lens_model)
         self.zero_skew = zero_skew
         self.max_iter = max_iter
-        self.model_parameters = ("fx", "fy", "cx", "cy", "k1", "k2") + (
-            () if zero_skew else ("skew",))
+        dist = free_coefficients("radial2" if lens_model is None else lens_model)
+        self.model_parameters = ("fx", "fy", "cx", "cy", *dist) + (() if zero_skew else ("skew",))
 
     def calibrate(self, obs: Observations) -> CalibrationResult:
         t0 = time.perf_counter()
@@ -118,7 +127,8 @@ class ZhangCalibrator:
         res = refine(model, model.params_of(initial),
                      free_mask(model.param_names, self.model_parameters),
                      obs.object_points, obs.image_points, rvecs, tvecs, max_iter=self.max_iter)
-        log = {"method": self.name, "zero_skew": self.zero_skew, "closed_form": initial.to_dict(),
+        log = {"method": self.name, "zero_skew": self.zero_skew,
+               "free": list(self.model_parameters), "closed_form": initial.to_dict(),
                **res.log(), "time_s": time.perf_counter() - t0,
                "notes": "Zhang 2000: closed form (App. B), eq. 13 radial, ML refinement (eq. 14)"}
         return CalibrationResult(model.camera(res.params, obs.camera_name, obs.image_size),
