@@ -60,13 +60,14 @@ def _named(source, fn, *args):
 
 
 def _methods(text: str) -> list[str]:
-    from .calibrate import available_methods
+    from .calibrate import check_methods
 
     methods = [m.strip() for m in text.split(",") if m.strip()]
-    unknown = [m for m in methods if m not in available_methods()]
-    if unknown or not methods:
-        raise ValueError(f"--methods: unknown {unknown or text!r}; available: "
-                         f"{','.join(available_methods())}")
+    try:
+        # BASE-MODEL variants too; an empty list is refused as the text it came from.
+        check_methods(methods or [text])
+    except ValueError as e:
+        raise ValueError(f"--methods: {e}") from None
     return methods
 
 
