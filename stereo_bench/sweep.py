@@ -8,7 +8,7 @@ A grid file crosses rig files with axes (docs/sweeps.md is the user's descriptio
     patterns: [checkerboard, charuco]         # shorthand for the axis pattern.kind
     environments: [noisy]                     # shorthand for the axis environment.kind
     axes:                                     # dotted rig-file field path -> values
-      environment.noise_sigma: [0, 2, 4, 8]
+      trajectory.tilt_deg: [10, 30, 50]
       cameras.*.dist.0: [0.1, 0.5]            # '*': every camera; an integer: one list entry
     methods: [zhang, opencv]
     trials: 4          # seeds per configuration (default: 10 if any is noisy, else 1)
@@ -17,9 +17,10 @@ A grid file crosses rig files with axes (docs/sweeps.md is the user's descriptio
 Every value is set into the rig's resolved configuration (``load_rig(...).model_dump()``) and
 the result validated as a rig file, so a path that is no field of the rig, or a value the
 field refuses, is refused before anything runs, naming the grid file, the axis and the value.
-Axes are crossed with each other and with the rig files. A new ``pattern.kind`` drops the base
-rig's other pattern fields (they belong to its board), and is set before any other
-``pattern.*`` axis.
+Axes are crossed with each other and with the rig files. A section's ``kind`` is set first: a
+new ``pattern.kind`` drops the base rig's other pattern fields (they describe its board), and a
+new ``environment.kind`` starts the environment again from what the rig file itself writes
+there, so that the preset of the new kind fills the rest.
 
 Each configuration runs the whole pipeline into OUT/<name>/ in its own spawned process, where
 <name> is ``<rig>_<pattern>_<environment>`` followed by ``_<field>-<value>`` for every other
