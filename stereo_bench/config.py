@@ -51,7 +51,18 @@ def _safe_name(name: str) -> str:
 Name = Annotated[str, Strict(), AfterValidator(_safe_name)]
 Vec3 = tuple[Float, Float, Float]
 PatternKind = Literal["checkerboard", "symmetric_circles", "asymmetric_circles", "charuco"]
-EnvironmentKind = Literal["clean", "noisy"]
+
+
+def _known_environment(kind: str) -> str:
+    from .environments import PRESETS
+
+    if kind not in PRESETS:
+        raise ValueError(f"unknown environment {kind!r}; expected one of {', '.join(PRESETS)}")
+    return kind
+
+
+#: An environment preset's name (stereo_bench/environments.py).
+EnvironmentKind = Annotated[str, Strict(), AfterValidator(_known_environment)]
 
 
 class _Strict(BaseModel):
@@ -325,24 +336,130 @@ class CalibrationConfig(_Strict):
     loss_scale_px: Float = Field(1.0, gt=0, le=100)
 
 
-class EnvironmentConfig(_Strict):
-    """Lighting and sensor: ``clean`` (uniform light, no noise) or ``noisy`` (directional light
-    shading plus additive Gaussian noise of ``noise_sigma`` grey levels)."""
+class LightConfig(_Strict):
+    """The lamp: ``direction`` it shines in (world frame), its ``distance_mm`` from the world
+    origin, the ``ambient`` share (1 = uniform light, no shading), and a glossy print's
+    ``specular`` highlight (its peak as a share of the white print) with Blinn-Phong
+    ``shininess``."""
 
-    kind: EnvironmentKind = "clean"
-    noise_sigma: Float = Field(6.0, ge=0, le=255)
-    light_direction: Vec3 = (0.6, -0.5, 1.0)
-    ambient: Float = Field(0.35, ge=0, le=1)
-    blur_sigma_px: Float = Field(0.0, ge=0, le=MAX_BLUR_PX)
-    background: Int = Field(110, ge=0, le=255)
-    supersampling: Int = Field(2, ge=1, le=16)
+    direction: Vec3 = (0.6, -0.5, 1.0)
+    distance_mm: Float = Field(1500.0, gt=0, le=1e6)
+    ambient: Float = Field(1.0, ge=0, le=1)
+    specular: Float = Field(0.0, ge=0, le=2)
+    shininess: Float = Field(50.0, ge=1, le=10000)
 
-    @field_validator("light_direction")
+    @field_validator("direction")
     @classmethod
     def _nonzero(cls, v):
         if not 1e-9 < np.linalg.norm(v) < 1e9:
             raise ValueError("expected a direction of length between 1e-9 and 1e9")
         return v
+
+
+class OpticsConfig(_Strict):
+    """The lens: thin-lens defocus (``f_number``, None = a pinhole with everything in focus;
+    the lens's physical ``focal_length_mm``; ``focus_distance_mm``, depth along the optical
+    axis; None: each camera focused on the median depth of the board's centre in its views), a
+    Gaussian lens blur ``blur_px`` (sigma) and vignetting (``corner_illumination``, the
+    relative illumination at the image's farthest corner, 1 = none)."""
+
+    f_number: Float | None = Field(None, ge=0.5, le=128)
+    focal_length_mm: Float = Field(8.0, gt=0, le=2000)
+    focus_distance_mm: Float | None = Field(None, gt=0, le=1e7)
+    blur_px: Float = Field(0.0, ge=0, le=MAX_BLUR_PX)
+    corner_illumination: Float = Field(1.0, gt=0, le=1)
+
+    @model_validator(mode="after")
+    def _focus(self):
+        if self.focus_distance_mm is not None and self.focus_distance_mm <= self.focal_length_mm:
+            raise ValueError(f"focus_distance_mm: {self.focus_distance_mm} mm; a lens of "
+                             f"{self.focal_length_mm} mm focuses beyond its focal length")
+        return self
+
+
+class MotionConfig(_Strict):
+    """Motion blur: the shutter is open ``exposure_ms`` while the board moves along its
+    trajectory at ``speed_mm_s`` (its centre; its rotation follows the trajectory's)."""
+
+    exposure_ms: Float = Field(0.0, ge=0, le=1000)
+    speed_mm_s: Float = Field(0.0, ge=0, le=1e5)
+
+
+class SensorConfig(_Strict):
+    """The photon transfer model: ``full_well_e`` (None: no photon noise), the white print's
+    ``exposure`` as a share of the full well (the gain maps it back to its grey level, so low
+    light means more noise), extra ``gain`` (> 1 clips highlights), ``read_noise_e``; additive
+    Gaussian ``noise_sigma`` in grey levels; an ADC of ``adc_bits``; ``jpeg_quality`` (None:
+    lossless)."""
+
+    full_well_e: Float | None = Field(None, ge=10, le=1e7)
+    exposure: Float = Field(0.6, gt=0, le=1)
+    gain: Float = Field(1.0, gt=0, le=100)
+    read_noise_e: Float = Field(0.0, ge=0, le=1e4)
+    noise_sigma: Float = Field(0.0, ge=0, le=255)
+    adc_bits: Int = Field(8, ge=2, le=8)
+    jpeg_quality: Int | None = Field(None, ge=1, le=100)
+
+
+class BoardConfig(_Strict):
+    """The board as made (board_shape.py): printed ``scale_error_pct`` % too large, a further
+    ``aspect_error_pct`` % in y, and bowed by ``warp_mm`` (x, y) at its centre (mrcal's
+    two-parabola warp; positive towards the camera facing the print). Calibrations are given
+    the nominal pattern; the ground truth is the physical board."""
+
+    scale_error_pct: Float = Field(0.0, ge=-10, le=10)
+    aspect_error_pct: Float = Field(0.0, ge=-10, le=10)
+    warp_mm: tuple[Float, Float] = Field((0.0, 0.0))
+
+    @field_validator("warp_mm")
+    @classmethod
+    def _warp(cls, v):
+        if max(abs(x) for x in v) > 100:
+            raise ValueError("expected deflections within 100 mm")
+        return v
+
+
+#: Keys of the environment before the imaging model, and where they live now.
+_MOVED = {"noise_sigma": "sensor.noise_sigma", "light_direction": "light.direction",
+          "ambient": "light.ambient", "blur_sigma_px": "optics.blur_px"}
+
+
+class EnvironmentConfig(_Strict):
+    """How the images are formed (render/imaging.py) and the board as made (``board``):
+    ``kind`` names a preset, a situation
+    (stereo_bench/environments.py: clean, noisy, studio, office, handheld_low_light,
+    paper_noisy), whose values fill every field the file does not give; the resolved
+    configuration lists them all."""
+
+    kind: EnvironmentKind = "clean"
+    background: Int = Field(110, ge=0, le=255)
+    supersampling: Int = Field(2, ge=1, le=16)
+    light: LightConfig = LightConfig()
+    optics: OpticsConfig = OpticsConfig()
+    motion: MotionConfig = MotionConfig()
+    sensor: SensorConfig = SensorConfig()
+    board: BoardConfig = BoardConfig()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _preset(cls, data):
+        from .environments import PRESETS
+
+        if not isinstance(data, dict):
+            return data
+        for old, new in _MOVED.items():
+            if old in data:
+                raise ValueError(f"{old}: now environment.{new} (see docs/imaging.md)")
+        preset = PRESETS.get(data.get("kind", "clean"))
+        if preset is None:
+            return data  # the kind's own validator names what is expected
+        merged = {**preset.settings}
+        for key, value in data.items():
+            if isinstance(value, dict) and isinstance(merged.get(key), dict):
+                merged[key] = {**merged[key], **value}
+            else:
+                merged[key] = value
+        return merged
 
 
 class RigConfig(_Strict):

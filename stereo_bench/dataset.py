@@ -8,8 +8,11 @@ Layout (documented in docs/dataset_format.md; paths built by ``rundir.DatasetPat
     DIR/pattern.png                 the board texture
     DIR/timing.json                 how long the render took (the only file that varies)
     DIR/ground_truth/*.npy          K (C,3,3), dist (C,8), cam_from_world_{rvec,tvec} (C,3),
-                                    world_from_board_{rvec,tvec} (F,3), object_points (N,3),
-                                    ids (N,), image_points (C,F,N,2), visible (C,F,N)
+                                    world_from_board_{rvec,tvec} (F,3), object_points (N,3)
+                                    (the pattern's, given to the calibrations), board_points
+                                    (N,3) (the physical board's, in the board frame: what the
+                                    truth is made of), ids (N,), image_points (C,F,N,2),
+                                    visible (C,F,N)
     DIR/images/<camera>/000000.png  synchronized frames, one folder per camera
 
 The manifest is written last, so a directory with a readable manifest is complete; its
@@ -31,11 +34,12 @@ import yaml
 from .camera import Camera
 from .config import ConfigError, RigConfig, parse_rig
 from .render import AnalyticRenderer, RenderSettings
+from .render.imaging import Light, Motion, Optics, Sensor
 from .rig import GroundTruth, Rig, Trajectory, coverage_warnings
 from .rundir import (DatasetPaths, UnreadableFileError, fingerprint, read_json, write_json,
                      write_npy, write_png, write_text)
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4  # 4: the imaging model (environment sections, board_points)
 TEXTURE_PX_PER_MM = 10.0
 
 
@@ -45,13 +49,21 @@ def frame_rng(seed: int, camera_index: int, frame: int) -> np.random.Generator:
     return np.random.default_rng([seed, camera_index, frame])
 
 
-def render_settings(cfg: RigConfig) -> RenderSettings:
+def render_settings(cfg: RigConfig, rig: Rig, cam: Camera) -> RenderSettings:
+    """The renderer's settings for one camera of the rig (its focus: ``median_depth`` when the
+    rig file leaves it to the camera)."""
     env = cfg.environment
+    o = env.optics
+    focus = o.focus_distance_mm if o.focus_distance_mm is not None else max(
+        rig.median_depth(cam), 1.01 * o.focal_length_mm)
     return RenderSettings(
-        environment=env.kind, noise_sigma=env.noise_sigma,
-        light_direction=tuple(env.light_direction), ambient=env.ambient,
-        blur_sigma_px=env.blur_sigma_px, background=env.background,
-        supersampling=env.supersampling)
+        supersampling=env.supersampling, background=env.background,
+        light=Light(tuple(env.light.direction), env.light.distance_mm, env.light.ambient,
+                    env.light.specular, env.light.shininess),
+        motion=Motion(env.motion.exposure_ms, env.motion.speed_mm_s),
+        optics=Optics(o.f_number, o.focal_length_mm, focus, o.blur_px, o.corner_illumination),
+        sensor=Sensor(**env.sensor.model_dump()),
+        board=rig.board)
 
 
 def dataset_fingerprint(cfg: RigConfig) -> str:
@@ -87,17 +99,17 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None) -> "Dataset":
             f"rig {cfg.name!r}: no camera would see the board: " + "; ".join(warnings)
             + " (fields: cameras.*.fx/fy/position_mm/look_at_mm, trajectory.depth_mm)")
     paths.manifest.unlink(missing_ok=True)
-    settings = render_settings(cfg)
-
     total = len(rig.cameras) * len(rig.trajectory)
     done = 0
     t0 = time.perf_counter()
     for c, cam in enumerate(rig.cameras):
+        settings = render_settings(cfg, rig, cam)
         renderer = AnalyticRenderer(cam, rig.pattern, settings)
         R, t = rig.cam_from_board(cam)
+        omega, v = rig.board_velocity(cam, settings.motion.speed_mm_s)
         for f in range(len(rig.trajectory)):
-            write_png(paths.image(cam.name, f), renderer.render(R[f], t[f],
-                                                                frame_rng(cfg.seed, c, f)))
+            image = renderer.render(R[f], t[f], frame_rng(cfg.seed, c, f), (omega[f], v[f]))
+            write_png(paths.image(cam.name, f), image)
             done += 1
             if progress:
                 progress(done, total)
@@ -112,6 +124,7 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None) -> "Dataset":
         "world_from_board_tvec": rig.trajectory.tvecs,
         "closeup_of": rig.closeup_of,
         "object_points": rig.pattern.object_points(),
+        "board_points": rig.board.points(rig.pattern.object_points()),
         "ids": rig.pattern.ids(),
         "image_points": gt.points,
         "visible": gt.visible,

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .board_shape import BoardShape
 from .camera import Camera, matrix_to_rodrigues, radial_fold_radius, rodrigues_to_matrix
 from .config import RigConfig, TrajectoryConfig
 from .patterns import pattern_from_config
@@ -275,6 +276,8 @@ class Rig:
 
     closeup_of: (F,) int, per frame the index of the camera whose close-up it is (a session's
     close-ups), -1 for every other frame.
+    board: the board as made (its print's scale errors and warp); the poses place the board's
+    frame, the ground truth is its physical points.
     """
 
     name: str
@@ -283,6 +286,7 @@ class Rig:
     pattern: object
     trajectory: Trajectory
     closeup_of: np.ndarray
+    board: BoardShape = BoardShape()
 
     @classmethod
     def from_config(cls, cfg: RigConfig) -> "Rig":
@@ -304,11 +308,14 @@ class Rig:
         else:
             trajectory = conical_spring(cameras, centre, radius, cfg.trajectory)
             closeup_of = np.full(len(trajectory), -1)
-        return cls(cfg.name, cfg.seed, cameras, pattern, trajectory, closeup_of)
+        b = cfg.environment.board
+        board = BoardShape.for_pattern(pattern, b.scale_error_pct, b.aspect_error_pct,
+                                       b.warp_mm)
+        return cls(cfg.name, cfg.seed, cameras, pattern, trajectory, closeup_of, board)
 
     def board_points_world(self) -> np.ndarray:
-        """Feature points in the world per frame, (F, N, 3) mm."""
-        obj = self.pattern.object_points()
+        """The physical board's feature points in the world per frame, (F, N, 3) mm."""
+        obj = self.board.points(self.pattern.object_points())
         R = self.trajectory.rotations
         return np.einsum("fij,nj->fni", R, obj) + self.trajectory.tvecs[:, None, :]
 
@@ -318,6 +325,51 @@ class Rig:
         R = cam.R @ Rwb
         t = (cam.R @ self.trajectory.tvecs.T).T + cam.tvec
         return R, t
+
+    @property
+    def board_centre(self) -> np.ndarray:
+        """The centre of the board's outline in its frame, (3,) mm (what it turns about)."""
+        return np.append(np.asarray(self.pattern.texture_origin_mm)
+                         + np.asarray(self.pattern.size_mm) / 2, 0.0)
+
+    def board_velocity(self, cam: Camera, speed_mm_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """Per frame, the board's motion in ``cam``'s frame: (omega (F, 3) rad/s about the
+        board's centre, v (F, 3) mm/s of its centre), moving along the trajectory with its
+        fastest outline corner at ``speed_mm_s`` (a hand turning a board moves its corners
+        faster than its centre). The direction is the step to the next frame of the same
+        sequence (the previous one at a sequence's end; a session's walk and each close-up
+        are sequences); a frame alone in its sequence, or one the board does not move from,
+        is still."""
+        R, tv = self.trajectory.rotations, self.trajectory.tvecs
+        centre = R @ self.board_centre + tv
+        x0, y0 = self.pattern.texture_origin_mm
+        w, h = self.pattern.size_mm
+        outline = np.array([[x0, y0, 0], [x0 + w, y0, 0], [x0 + w, y0 + h, 0], [x0, y0 + h, 0]])
+        corners = np.einsum("fij,kj->fki", R, outline) + tv[:, None]
+        F = len(R)
+        omega, v = np.zeros((F, 3)), np.zeros((F, 3))
+        seq = self.closeup_of
+        for f in range(F):
+            if f + 1 < F and seq[f + 1] == seq[f]:
+                a, b = f, f + 1
+            elif f > 0 and seq[f - 1] == seq[f]:
+                a, b = f - 1, f
+            else:
+                continue
+            dist = np.linalg.norm(corners[b] - corners[a], axis=1).max()
+            if dist < 1e-9:
+                continue
+            rotvec = matrix_to_rodrigues(R[b] @ R[a].T)
+            omega[f] = rotvec * speed_mm_s / dist
+            v[f] = (centre[b] - centre[a]) * speed_mm_s / dist
+        return omega @ cam.R.T, v @ cam.R.T
+
+    def median_depth(self, cam: Camera) -> float:
+        """Median depth (mm, along the optical axis) of the board's centre over the frames in
+        which it is in front of ``cam``: where a user focuses the lens."""
+        R, t = self.cam_from_board(cam)
+        z = (R @ self.board_centre + t)[:, 2]
+        return float(np.median(z[z > 0])) if np.any(z > 0) else 1000.0
 
     def ground_truth(self) -> GroundTruth:
         Xw = self.board_points_world()

@@ -52,14 +52,16 @@ NASTY = [None, True, False, 0, -1, 1, 2, 1.5, 1e12, -1e12, 1e-300, 2**70, 1000, 
          float("nan"), float("inf"), float("-inf"), "", ".", "..", "../../x", "/abs/x",
          "x" * 300, "abc", "9", "a/b", [], [1], [1, 2, 3], [float("nan"), 0, 0], {}, {"a": 1}]
 PLAUSIBLE = [0.5, 3, 5, 7, 9, 11, 20.0, 50.0, 300, 640, 1e4, 5e5, [5e5, 6e5], [100, 200],
-             [0, 0, 0], "charuco", "noisy", "symmetric_circles", "asymmetric_circles", "left"]
+             [0, 0, 0], "charuco", "noisy", "symmetric_circles", "asymmetric_circles", "left",
+             "office", {"f_number": 2.0}, {"warp_mm": [3, 3]}, {"speed_mm_s": 400.0}]
 # Keys a user might set that the base file leaves out (pattern overrides, optional fields).
 EXTRA_KEYS = [("pattern", "square_mm"), ("pattern", "squares_x"), ("pattern", "squares_y"),
               ("pattern", "cols"), ("pattern", "rows"), ("pattern", "spacing_mm"),
               ("pattern", "diameter_mm"), ("pattern", "marker_mm"), ("pattern", "margin_mm"),
               ("pattern", "dictionary"), ("trajectory", "depth_mm"), ("trajectory", "radius_mm"),
-              ("trajectory", "tilt_deg"), ("environment", "blur_sigma_px"),
-              ("environment", "noise_sigma"), ("environment", "background"),
+              ("trajectory", "tilt_deg"), ("environment", "sensor"),
+              ("environment", "optics"), ("environment", "motion"), ("environment", "light"),
+              ("environment", "board"), ("environment", "background"),
               ("cameras", 0, "skew"), ("cameras", 1, "up"), ("cameras", 0, "k1"), ("colour",),
               ("studio", "arc_deg"), ("studio", "size_mm"), ("studio", "layout"),
               ("studio", "names"), ("trajectory", "kind"), ("trajectory", "closeups"),

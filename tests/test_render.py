@@ -10,7 +10,8 @@ import pytest
 from stereo_bench.camera import Camera, rodrigues_to_matrix
 from stereo_bench.patterns import Checkerboard
 from stereo_bench.render import AnalyticRenderer, PixelRays, RenderSettings
-from stereo_bench.render.analytic import _sample_texels
+from stereo_bench.render.analytic import _plane_texels, _sample_texels
+from stereo_bench.render.imaging import Light, Optics, Sensor
 
 WIDE = Camera("wide", 640, 480, 600, 450, 320, 240, 0,
               np.array([0.5, 0.1, 0.03, 0, 0, 0, 0, 0]))
@@ -66,7 +67,7 @@ def test_detected_corners_match_ground_truth(cam, rays):
     """Geometry is exact: corners detected in renders of tilted, distorted views sit where the
     camera model projects the board's corners (the detector's own error included)."""
     for blur in (0.0, 0.5):
-        renderer = AnalyticRenderer(cam, BOARD, RenderSettings(blur_sigma_px=blur), rays(cam))
+        renderer = AnalyticRenderer(cam, BOARD, RenderSettings(optics=Optics(blur_px=blur)), rays(cam))
         errors = []
         for R, t in tilted_poses(cam, 12, seed=3):
             truth = cam.project_cam(OBJ @ R.T + t)
@@ -137,7 +138,7 @@ def test_interpolated_samples_match_exact_rays(cam, s, rays):
                         np.ones((len(v), len(u), 1))], -1) @ M.T
     truth = q[..., :2] / q[..., 2:]
     for per_sample in (False, True):
-        err = _sample_texels(rays(cam).xy[r0:r1 + 2], M, s, per_sample) - truth
+        err = _sample_texels(rays(cam).xy[r0:r1 + 2], _plane_texels(M), s, per_sample) - truth
         assert np.abs(err).max() < 1e-3
         assert np.all(np.abs(err.reshape(-1, 2).mean(0)) < 5e-4)
 
@@ -162,7 +163,8 @@ def away_from_outline(mask):
 
 
 def test_same_seed_same_bytes_and_noise_level(rays):
-    noisy = AnalyticRenderer(WIDE, BOARD, RenderSettings(environment="noisy", noise_sigma=6.0),
+    noisy = AnalyticRenderer(WIDE, BOARD, RenderSettings(light=Light(ambient=0.35),
+                                                        sensor=Sensor(noise_sigma=6.0)),
                              rays(WIDE))
     R, t = tilted_poses(WIDE, 1, seed=7)[0]
     a = noisy.render(R, t, np.random.default_rng(11))
@@ -180,7 +182,7 @@ def test_same_seed_same_bytes_and_noise_level(rays):
 
 def test_noisy_light_shades_the_board_smoothly(rays):
     R, t = tilted_poses(WIDE, 1, seed=7)[0]
-    lit = AnalyticRenderer(WIDE, BOARD, RenderSettings(environment="noisy", noise_sigma=0.0),
+    lit = AnalyticRenderer(WIDE, BOARD, RenderSettings(light=Light(ambient=0.35)),
                            rays(WIDE)).render(R, t)
     clean = AnalyticRenderer(WIDE, BOARD, RenderSettings(), rays(WIDE)).render(R, t)
     white = clean == RenderSettings().white_level
@@ -225,13 +227,13 @@ def test_pixels_off_the_board_are_background(case, rays):
 
 
 def test_bad_input_names_the_field():
-    with pytest.raises(ValueError, match="environment"):
-        RenderSettings(environment="foggy")
+    with pytest.raises(ValueError, match="sensor"):
+        RenderSettings(sensor="noisy")
     with pytest.raises(ValueError, match="supersampling"):
         RenderSettings(supersampling=0)
     with pytest.raises(ValueError, match="black_level"):
         RenderSettings(black_level=240)
-    renderer = AnalyticRenderer(PINHOLE, BOARD, RenderSettings(environment="noisy"))
+    renderer = AnalyticRenderer(PINHOLE, BOARD, RenderSettings(sensor=Sensor(noise_sigma=6.0)))
     with pytest.raises(ValueError, match="rng"):
         renderer.render(np.eye(3), np.array([0, 0, 400.0]))
     with pytest.raises(ValueError, match=r"R \(3, 3\)"):

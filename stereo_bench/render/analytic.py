@@ -39,7 +39,10 @@ import cv2
 import numpy as np
 from scipy.special import ndtri
 
+from ..board_shape import BoardShape
 from ..camera import Camera, distort_with_jacobians, radial_fold_radius
+from .imaging import (MAX_MOTION_SUBFRAMES, Light, Motion, Optics, Sensor, blinn_phong, defocus,
+                      expose, vignetting_gain)
 
 _PAD = 2           # background texels around every texture (also absorbs perspectiveTransform's
                    # (0, 0) answer for rays parallel to the plane)
@@ -49,6 +52,8 @@ _OUTSIDE = -1.0e4  # texel coordinate far outside every texture
 _MAX_DEPTH_SLOPE = 2e-3  # per px: interpolating texel coordinates is accurate to 5e-4 px below
 _LEVELS_PER_OCTAVE = 4
 _LEVELS_KEPT = 4   # texture levels cached per renderer (<= 4 x 32 MiB at the default cap)
+_SUBFRAME_STEP_PX = 0.5  # motion blur: the largest image motion between sub-frames
+_MAX_DEFOCUS_PX = 50.0   # defocus radius cap: beyond it no detector finds the board anyway
 
 
 @dataclass(frozen=True)
@@ -63,13 +68,9 @@ class RenderSettings:
     background: gray level where no board is seen.
     black_level, white_level: gray levels of the board's black print and white paper under full
         light (20 / 235 leave room for noise before clipping).
-    environment: "clean" (uniform light, no noise) or "noisy" (lamp shading plus Gaussian noise).
-    light_direction: direction the light travels, world frame (unit length not required).
-    light_distance_mm: the lamp sits this far from the world origin, against light_direction; its
-        finite distance is what makes the shading vary across the board.
-    ambient: share of the light that is ambient (0..1); noisy only.
-    noise_sigma: additive Gaussian noise, gray levels; noisy only.
-    blur_sigma_px: optional Gaussian blur (optics) in pixels, applied before the noise; 0 = none.
+    light, motion, optics, sensor: the imaging model (imaging.py); the defaults are an ideal
+        camera (uniform light, no motion, a pinhole, no noise).
+    board: the board as made (board_shape.py); None: exactly its pattern.
     """
 
     supersampling: int = 2
@@ -78,12 +79,11 @@ class RenderSettings:
     background: float = 110.0
     black_level: float = 20.0
     white_level: float = 235.0
-    environment: str = "clean"
-    light_direction: tuple[float, float, float] = (0.6, -0.5, 1.0)
-    light_distance_mm: float = 1500.0
-    ambient: float = 0.35
-    noise_sigma: float = 6.0
-    blur_sigma_px: float = 0.0
+    light: Light = Light()
+    motion: Motion = Motion()
+    optics: Optics = Optics()
+    sensor: Sensor = Sensor()
+    board: BoardShape | None = None
 
     def __post_init__(self):
         def need(ok, field, expected):
@@ -98,14 +98,20 @@ class RenderSettings:
         for field in ("background", "black_level", "white_level"):
             need(0 <= getattr(self, field) <= 255, field, "a gray level in 0..255")
         need(self.black_level < self.white_level, "black_level", "below white_level")
-        need(self.environment in ("clean", "noisy"), "environment", "'clean' or 'noisy'")
-        light = np.asarray(self.light_direction, dtype=np.float64)
+        for field, kind in (("light", Light), ("motion", Motion), ("optics", Optics),
+                            ("sensor", Sensor)):
+            need(isinstance(getattr(self, field), kind), field, f"an imaging.{kind.__name__}")
+        light = np.asarray(self.light.direction, dtype=np.float64)
         need(light.shape == (3,) and np.all(np.isfinite(light)) and np.linalg.norm(light) > 0,
-             "light_direction", "3 finite numbers, not all zero")
-        need(self.light_distance_mm > 0, "light_distance_mm", "a positive distance")
-        need(0 <= self.ambient <= 1, "ambient", "a number in 0..1")
-        need(self.noise_sigma >= 0, "noise_sigma", "a non-negative number")
-        need(self.blur_sigma_px >= 0, "blur_sigma_px", "a non-negative number")
+             "light", "a direction of 3 finite numbers, not all zero")
+
+    @property
+    def ideal_sensor(self) -> bool:
+        """Nothing but additive noise after the 8-bit conversion of the irradiance."""
+        return not self.motion.active and \
+            self.optics.f_number is None and self.optics.corner_illumination >= 1.0 and \
+            self.sensor.full_well_e is None and self.sensor.gain == 1.0 and \
+            self.sensor.adc_bits >= 8 and self.sensor.jpeg_quality is None
 
 
 class PixelRays:
@@ -184,16 +190,18 @@ class AnalyticRenderer:
         self._levels: OrderedDict[int, _Level] = OrderedDict()
 
     # --- public -------------------------------------------------------------------------------
-    def render(self, R: np.ndarray, t: np.ndarray, rng: np.random.Generator | None = None
-               ) -> np.ndarray:
+    def render(self, R: np.ndarray, t: np.ndarray, rng: np.random.Generator | None = None,
+               velocity: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """Image (H, W) uint8 of the board at ``cam_from_board = (R (3, 3), t (3,) mm)``.
 
-        ``rng`` drives the noise of the "noisy" environment (required there, unused in "clean"):
-        the same inputs and generator state give byte-identical images.
+        ``rng`` drives the sensor noise (required when the sensor is noisy): the same inputs and
+        generator state give byte-identical images. ``velocity``: (omega (3,) rad/s, v (3,)
+        mm/s), the board's rotation about its centre and its centre's velocity, camera frame;
+        with ``settings.motion`` it is blurred over the exposure, at mid-exposure at (R, t).
         """
         st = self.settings
-        if st.environment == "noisy" and st.noise_sigma > 0 and rng is None:
-            raise ValueError("AnalyticRenderer.render: environment 'noisy' needs an rng "
+        if st.sensor.noisy and rng is None:
+            raise ValueError("AnalyticRenderer.render: a noisy sensor needs an rng "
                              "(numpy.random.Generator)")
         R = np.asarray(R, dtype=np.float64)
         t = np.asarray(t, dtype=np.float64).reshape(-1)
@@ -202,9 +210,52 @@ class AnalyticRenderer:
             raise ValueError(f"AnalyticRenderer.render: expected finite R (3, 3) and t (3,), "
                              f"got shapes {R.shape} and {t.shape}")
         H, W = self.camera.height, self.camera.width
+        poses = self._exposure_poses(R, t, velocity)
         canvas = np.full((H, W), round(st.background * 256), dtype=np.uint16)
-        strips = self._draw_board(canvas, R, t)
-        return self._finish(canvas, strips, rng)
+        if len(poses) == 1:
+            strips = self._draw_board(canvas, R, t)
+            return self._finish(canvas, strips, rng, R, t)
+        # The mean of the sub-frames, accumulated only where they draw (each one's strips are
+        # disjoint bands of rows): background + mean of (sub-frame - background).
+        background = np.float32(round(st.background * 256))
+        total = np.zeros((H, W), dtype=np.float32)
+        strips = []
+        for Rk, tk in poses:
+            drawn = self._draw_board(canvas, Rk, tk)
+            for r0, r1, c0, c1, _ in drawn:
+                total[r0:r1, c0:c1] += canvas[r0:r1, c0:c1] - background
+                canvas[r0:r1, c0:c1] = background
+            strips += drawn
+        total *= np.float32(1 / len(poses))
+        total += background
+        return self._finish(total, strips, rng, R, t)
+
+    def _exposure_poses(self, R, t, velocity) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The sub-frame poses of the exposure: [(R, t)] without motion, else enough evenly
+        spaced times (midpoint rule over the exposure) that the board's outline moves at most
+        ``_SUBFRAME_STEP_PX`` between them, capped at ``MAX_MOTION_SUBFRAMES``."""
+        motion = self.settings.motion
+        if velocity is None or not motion.active:
+            return [(R, t)]
+        omega, v = (np.asarray(x, dtype=np.float64) for x in velocity)
+        T = motion.exposure_ms / 1000.0
+        centre_board = np.append(self._origin + self._size / 2, 0.0)
+        centre = R @ centre_board + t
+
+        def pose(tau):
+            dR = cv2.Rodrigues(omega * tau)[0]
+            Rk = dR @ R
+            return Rk, centre + v * tau - Rk @ centre_board
+
+        outline = np.column_stack([self._outline_mm(), np.zeros(4)])
+        ends = [(outline @ Rk.T + tk) for Rk, tk in (pose(-T / 2), pose(T / 2))]
+        if min(e[:, 2].min() for e in ends) <= 0:
+            steps = MAX_MOTION_SUBFRAMES  # crosses the camera's plane: as fine as allowed
+        else:
+            uv = [self.camera.normalized_to_pixels(e[:, :2] / e[:, 2:]) for e in ends]
+            steps = int(math.ceil(np.linalg.norm(uv[1] - uv[0], axis=1).max() / _SUBFRAME_STEP_PX))
+        k = int(np.clip(steps, 1, MAX_MOTION_SUBFRAMES))
+        return [pose(T * ((i + 0.5) / k - 0.5)) for i in range(k)]
 
     # --- geometry -----------------------------------------------------------------------------
     def _outline_mm(self) -> np.ndarray:
@@ -225,18 +276,38 @@ class AnalyticRenderer:
             return []
         s = self.settings.supersampling
         level = self._level(footprint / s, front=normal_dot > 0, R=R, t=t)
-        A = np.array([[level.px_per_mm, 0, -level.texel_offset[0]],
-                      [0, level.px_per_mm, -level.texel_offset[1]], [0, 0, 1]])
-        M = A @ B  # normalized (x, y) -> texel (j, i) of the level
+        to_texels = self._texel_map(level, B, R, t)
         border = round(self.settings.background * 256)
         for r0, r1, c0, c1, exact in strips:
             xy = self.rays.xy[r0:r1 + 2, c0:c1 + 2]  # pixels r0-1..r1, c0-1..c1
-            texels = _sample_texels(xy, M, s, exact)
+            texels = _sample_texels(xy, to_texels, s, exact)
             samples = cv2.remap(level.image, texels, None, cv2.INTER_LINEAR,
                                 borderMode=cv2.BORDER_CONSTANT, borderValue=border)
             canvas[r0:r1, c0:c1] = cv2.resize(samples, (c1 - c0, r1 - r0),
                                               interpolation=cv2.INTER_AREA)
         return strips
+
+    def _texel_map(self, level: "_Level", B: np.ndarray, R: np.ndarray, t: np.ndarray):
+        """A function from normalized coordinates (h, w, 2) float32 to the level's texel
+        coordinates (h, w, 2) float32 (``_OUTSIDE`` where the ray meets the board behind the
+        camera, when ``cut`` asks for it): the plane homography for a board that is exactly its
+        pattern, else the ray's intersection with the physical board (board_shape.py)."""
+        A = np.array([[level.px_per_mm, 0, -level.texel_offset[0]],
+                      [0, level.px_per_mm, -level.texel_offset[1]], [0, 0, 1]])
+        shape = self.settings.board
+        if shape is None or shape.is_nominal:
+            return _plane_texels(A @ B)  # normalized (x, y) -> texel (j, i) of the level
+
+        R32, t32 = R.astype(np.float32), t.astype(np.float32)
+        offset = level.texel_offset.astype(np.float32)
+        scale = np.float32(level.px_per_mm)
+
+        def surface(xy, cut):
+            nominal, depth = shape.nominal_on_rays(xy, R32, t32)
+            texels = nominal * scale - offset
+            texels[~(depth > 0)] = _OUTSIDE  # behind the camera, or parallel to the board
+            return texels
+        return surface
 
     def _locate(self, B: np.ndarray, R: np.ndarray, t: np.ndarray):
         """Where the board is in the image, and how large a pixel is on it.
@@ -330,15 +401,18 @@ class AnalyticRenderer:
                 self._levels.popitem(last=False)
         self._levels.move_to_end(key)
         level = self._levels[key]
-        if (front or printed_back) and st.environment == "clean":
+        if (front or printed_back) and st.light.uniform:
             return level
         image = level.image.copy()
         inner = image[_PAD:-_PAD, _PAD:-_PAD]
         if not front and not printed_back:  # the back of a one-sided board is blank paper
             inner[...] = round(st.white_level * 256)
-        if st.environment == "noisy":
-            gain = self._shading(inner.shape, R, t, front)
-            inner[...] = cv2.multiply(inner, gain, dtype=cv2.CV_16U)
+        if not st.light.uniform:
+            diffuse, specular = self._shading(inner.shape, R, t, front)
+            lit = cv2.multiply(inner, diffuse, dtype=cv2.CV_32F)
+            if st.light.specular > 0:
+                lit += specular * np.float32(st.white_level * 256)
+            inner[...] = np.clip(lit, 0, 65535)
         return _Level(image, level.px_per_mm, level.texel_offset)
 
     def _rasterize(self, px_per_mm: float, back: bool = False) -> _Level:
@@ -360,50 +434,96 @@ class AnalyticRenderer:
         # Texel (j, i) centre is at origin + (j + 0.5, i + 0.5) / px_per_mm, before padding.
         return _Level(image, px_per_mm, self._origin * px_per_mm + 0.5 - _PAD)
 
-    def _shading(self, shape, R, t, front: bool) -> np.ndarray:
-        """(H, W) float32 light gain over the level's texels: ambient + Lambert from the lamp.
+    def _shading(self, shape, R, t, front: bool) -> tuple[np.ndarray, np.ndarray]:
+        """(diffuse gain, specular share), each (H, W) float32 over the level's texels
+        (imaging.blinn_phong), computed on a 64 x 64 grid over the board and interpolated
+        (both vary smoothly at the shininess a print has).
 
-        The lamp sits ``light_distance_mm`` from the world origin against ``light_direction``;
-        irradiance falls with the squared distance, normalized to 1 at the board centre, so the
-        gain varies smoothly across the board (it is computed on a 32 x 32 grid and
-        interpolated).
-        """
-        st, cam = self.settings, self.camera
-        d = np.asarray(st.light_direction, dtype=np.float64)
-        lamp = cam.R @ (-st.light_distance_mm * d / np.linalg.norm(d)) + cam.tvec
-        n = 32
+        The lamp sits ``light.distance_mm`` from the world origin against its direction."""
+        light, cam = self.settings.light, self.camera
+        d = np.asarray(light.direction, dtype=np.float64)
+        lamp = cam.R @ (-light.distance_mm * d / np.linalg.norm(d)) + cam.tvec
+        n = 64
         # Grid points at the positions cv2.resize's half-pixel convention samples from.
         gx = self._origin[0] + (np.arange(n) + 0.5) * self._size[0] / n
         gy = self._origin[1] + (np.arange(n) + 0.5) * self._size[1] / n
         X, Y = np.meshgrid(gx, gy)
         p = X[..., None] * R[:, 0] + Y[..., None] * R[:, 1] + t
-        to_lamp = lamp - p
-        dist = np.linalg.norm(to_lamp, axis=-1)
         normal = -R[:, 2] if front else R[:, 2]  # the seen face's normal points at the camera
         centre = R[:, :2] @ (self._origin + self._size / 2) + t
-        falloff = (np.linalg.norm(lamp - centre) / dist) ** 2
-        gain = st.ambient + (1 - st.ambient) * np.maximum(to_lamp @ normal / dist, 0) * falloff
-        return cv2.resize(gain.astype(np.float32), (shape[1], shape[0]),
-                          interpolation=cv2.INTER_LINEAR)
+        diffuse, specular = blinn_phong(p, normal, lamp, light, centre)
+        size = (shape[1], shape[0])
+        return (cv2.resize(diffuse.astype(np.float32), size, interpolation=cv2.INTER_LINEAR),
+                cv2.resize(specular.astype(np.float32), size, interpolation=cv2.INTER_LINEAR))
 
     # --- sensor -------------------------------------------------------------------------------
-    def _finish(self, canvas: np.ndarray, strips: list, rng) -> np.ndarray:
-        """Blur, noise and 8-bit quantization of the canvas (H, W) uint16 (1/256 gray levels)."""
+    def _finish(self, canvas: np.ndarray, strips: list, rng, R, t) -> np.ndarray:
+        """Optics and sensor: the canvas (H, W), uint16 in 1/256 gray levels or float32 in gray
+        levels (a motion-blurred mean), becomes the 8-bit image."""
         st = self.settings
-        if st.blur_sigma_px > 0 and strips:
-            # Only around the board: the rest is uniform, which a blur leaves unchanged.
-            m = int(math.ceil(4 * st.blur_sigma_px)) + 1
-            r0 = max(min(s[0] for s in strips) - m, 0)
-            r1 = min(max(s[1] for s in strips) + m, canvas.shape[0])
-            c0 = max(min(s[2] for s in strips) - m, 0)
-            c1 = min(max(s[3] for s in strips) + m, canvas.shape[1])
-            canvas[r0:r1, c0:c1] = cv2.GaussianBlur(canvas[r0:r1, c0:c1], (0, 0),
-                                                    st.blur_sigma_px,
-                                                    borderType=cv2.BORDER_REPLICATE)
-        if st.environment == "noisy" and st.noise_sigma > 0:
-            noise = gaussian_noise(rng, canvas.shape)
-            return cv2.addWeighted(canvas, 1 / 256, noise, st.noise_sigma, 0, dtype=cv2.CV_8U)
-        return cv2.convertScaleAbs(canvas, alpha=1 / 256)
+        if st.ideal_sensor and canvas.dtype == np.uint16:
+            # The exact integer path of an ideal camera (and of additive noise only).
+            if st.optics.blur_px > 0 and strips:
+                box = self._board_box(strips, int(math.ceil(4 * st.optics.blur_px)) + 1)
+                canvas[box] = cv2.GaussianBlur(canvas[box], (0, 0), st.optics.blur_px,
+                                               borderType=cv2.BORDER_REPLICATE)
+            if st.sensor.noise_sigma > 0:
+                noise = gaussian_noise(rng, canvas.shape)
+                return cv2.addWeighted(canvas, 1 / 256, noise, st.sensor.noise_sigma, 0,
+                                       dtype=cv2.CV_8U)
+            return cv2.convertScaleAbs(canvas, alpha=1 / 256)
+        image = canvas.astype(np.float32) * np.float32(1 / 256)  # both are in 1/256 levels
+        optics = st.optics
+        if optics.f_number is not None and strips:
+            # The blur's reach from the coarse nodes, then the exact radius per pixel in the box.
+            nodes = optics.circle_of_confusion_px(self._plane_depth(self.rays.node_xy, R, t),
+                                                  self.camera.fx)
+            finite = np.isfinite(nodes)
+            reach = min(0.5 * nodes[finite].max() if finite.any() else 0.0, _MAX_DEFOCUS_PX)
+            box = self._board_box(strips, int(math.ceil(reach)) + 2)
+            rows, cols = box
+            xy = self.rays.xy[rows.start + 1:rows.stop + 1, cols.start + 1:cols.stop + 1]
+            radius = 0.5 * optics.circle_of_confusion_px(self._plane_depth(xy, R, t),
+                                                         self.camera.fx)
+            image[box] = defocus(image[box], np.minimum(radius, reach).astype(np.float32))
+        if optics.blur_px > 0 and strips:
+            box = self._board_box(strips, int(math.ceil(4 * optics.blur_px)) + 1)
+            image[box] = cv2.GaussianBlur(image[box], (0, 0), optics.blur_px,
+                                          borderType=cv2.BORDER_REPLICATE)
+        if optics.corner_illumination < 1.0:
+            image *= self._vignetting()
+        noise = gaussian_noise(rng, image.shape) if st.sensor.noisy else None
+        return expose(image, st.sensor, st.white_level, noise)
+
+    def _board_box(self, strips: list, margin: int) -> tuple[slice, slice]:
+        """The rows and columns of every strip drawn, widened by ``margin`` px (the rest of the
+        image is uniform background, which a blur leaves unchanged)."""
+        H, W = self.camera.height, self.camera.width
+        r0 = max(min(s[0] for s in strips) - margin, 0)
+        r1 = min(max(s[1] for s in strips) + margin, H)
+        c0 = max(min(s[2] for s in strips) - margin, 0)
+        c1 = min(max(s[3] for s in strips) + margin, W)
+        return slice(r0, r1), slice(c0, c1)
+
+    @staticmethod
+    def _plane_depth(xy: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """Depth (mm along the optical axis) where the rays of normalized coordinates xy (..., 2)
+        meet the board's plane; inf where they do not (a warp's millimetres do not matter to a
+        blur)."""
+        n = R[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            depth = (n @ t) / (xy[..., 0] * n[0] + xy[..., 1] * n[1] + n[2])
+        depth[~(depth > 0)] = np.inf
+        return depth
+
+    def _vignetting(self) -> np.ndarray:
+        """(H, W) float32 relative illumination of each pixel (built once per renderer)."""
+        if getattr(self, "_vignette", None) is None:
+            xy = self.rays.xy[1:-1, 1:-1]
+            corners = xy[[0, 0, -1, -1], [0, -1, 0, -1]].astype(np.float64)
+            self._vignette = vignetting_gain(xy, self.settings.optics.corner_illumination,
+                                             float(np.sum(corners ** 2, axis=1).max()))
+        return self._vignette
 
 
 def _cells_touching(nodes: np.ndarray, n_cells: tuple[int, int]) -> np.ndarray:
@@ -423,23 +543,31 @@ def _inv2(J: np.ndarray) -> np.ndarray:
     return inv.reshape(-1, 2, 2)
 
 
-def _sample_texels(xy: np.ndarray, M: np.ndarray, s: int, exact: bool) -> np.ndarray:
+def _plane_texels(M: np.ndarray):
+    """``to_texels`` of a plane homography M (3, 3) (see ``_sample_texels``)."""
+    def plane(xy, cut):
+        texels = cv2.perspectiveTransform(xy, M)
+        if cut:
+            texels[xy @ M[2, :2] + M[2, 2] <= 0] = _OUTSIDE
+        return texels
+    return plane
+
+
+def _sample_texels(xy: np.ndarray, to_texels, s: int, exact: bool) -> np.ndarray:
     """Texel coordinates (s h, s w, 2) float32 of the s x s samples of h x w pixels.
 
     ``xy`` (h + 2, w + 2, 2): normalized coordinates of the pixels and a one-pixel margin;
-    ``M`` (3, 3): normalized -> texel homography. cv2.resize's half-pixel convention puts sample
-    j of the upsampled grid at pixel (j + 0.5) / s - 0.5, exactly the sample offsets, so
-    interpolating and cropping the margin gives the samples. Normally the smooth texel map is
-    interpolated (one homography per pixel); ``exact`` interpolates the rays (smooth everywhere)
-    and applies the homography per sample, cutting out samples whose ray meets the plane
-    behind the camera.
+    ``to_texels(xy, cut)``: normalized -> texel coordinates (``AnalyticRenderer._texel_map``).
+    cv2.resize's half-pixel convention puts sample j of the upsampled grid at pixel
+    (j + 0.5) / s - 0.5, exactly the sample offsets, so interpolating and cropping the margin
+    gives the samples. Normally the smooth texel map is interpolated (one mapping per pixel);
+    ``exact`` interpolates the rays (smooth everywhere) and maps each sample, cutting out
+    samples whose ray meets the board behind the camera.
     """
     h, w = xy.shape[0] - 2, xy.shape[1] - 2
     size = (s * (w + 2), s * (h + 2))
     if not exact:
-        up = cv2.resize(cv2.perspectiveTransform(xy, M), size, interpolation=cv2.INTER_LINEAR)
+        up = cv2.resize(to_texels(xy, False), size, interpolation=cv2.INTER_LINEAR)
         return up[s:-s, s:-s]
     up = cv2.resize(xy, size, interpolation=cv2.INTER_LINEAR)[s:-s, s:-s]
-    texels = cv2.perspectiveTransform(up, M)
-    texels[up @ M[2, :2] + M[2, 2] <= 0] = _OUTSIDE
-    return texels
+    return to_texels(up, True)
