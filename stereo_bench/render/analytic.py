@@ -53,6 +53,7 @@ _MAX_DEPTH_SLOPE = 2e-3  # per px: interpolating texel coordinates is accurate t
 _LEVELS_PER_OCTAVE = 4
 _LEVELS_KEPT = 4   # texture levels cached per renderer (<= 4 x 32 MiB at the default cap)
 _SUBFRAME_STEP_PX = 0.5  # motion blur: the largest image motion between sub-frames
+_SHAPE_CELL = 4          # px, grid of exact ray / warped-board intersections (see _texel_map)
 _MAX_DEFOCUS_PX = 50.0   # defocus radius cap: beyond it no detector finds the board anyway
 
 
@@ -179,7 +180,8 @@ class AnalyticRenderer:
 
     def __init__(self, camera: Camera, pattern, settings: RenderSettings = RenderSettings(),
                  rays: PixelRays | None = None):
-        if rays is not None and rays.camera is not camera:
+        if rays is not None and rays.camera is not camera and \
+                rays.camera.to_dict() != camera.to_dict():
             raise ValueError("AnalyticRenderer: rays were built for another camera")
         self.camera = camera
         self.pattern = pattern
@@ -301,12 +303,30 @@ class AnalyticRenderer:
         R32, t32 = R.astype(np.float32), t.astype(np.float32)
         offset = level.texel_offset.astype(np.float32)
         scale = np.float32(level.px_per_mm)
+        plane = _plane_texels(A @ B)
 
-        def surface(xy, cut):
+        def exact(xy):
             nominal, depth = shape.nominal_on_rays(xy, R32, t32)
             texels = nominal * scale - offset
             texels[~(depth > 0)] = _OUTSIDE  # behind the camera, or parallel to the board
             return texels
+
+        def surface(xy, cut):
+            if cut:
+                return exact(xy)
+            # Where the map is smooth, the board's departure from its plane (a scale and a
+            # warp of millimetres) moves texels smoothly: exact on a grid of at most
+            # _SHAPE_CELL px, bilinear in between, on top of the exact plane map.
+            h, w = xy.shape[:2]
+            rows = np.linspace(0, h - 1, -(-(h - 1) // _SHAPE_CELL) + 1).round().astype(int)
+            cols = np.linspace(0, w - 1, -(-(w - 1) // _SHAPE_CELL) + 1).round().astype(int)
+            coarse = np.ascontiguousarray(xy[np.ix_(rows, cols)])
+            shift = exact(coarse) - plane(coarse, False)
+            # Separable linear interpolation as two small matrix products (cv2.remap would
+            # round its positions to 1/32 of a cell).
+            Wr, Wc = _linear_weights(h, rows), _linear_weights(w, cols)
+            shift = np.einsum("in,nmc,jm->ijc", Wr, shift, Wc, optimize=True)
+            return plane(xy, False) + shift.astype(np.float32)
         return surface
 
     def _locate(self, B: np.ndarray, R: np.ndarray, t: np.ndarray):
@@ -541,6 +561,18 @@ def _inv2(J: np.ndarray) -> np.ndarray:
     det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
     inv = np.stack([J[:, 1, 1], -J[:, 0, 1], -J[:, 1, 0], J[:, 0, 0]], -1) / det[:, None]
     return inv.reshape(-1, 2, 2)
+
+
+def _linear_weights(n: int, nodes: np.ndarray) -> np.ndarray:
+    """(n, len(nodes)) float32 weights of linear interpolation at 0..n-1 from values at the
+    increasing integer positions ``nodes`` (first 0, last n - 1)."""
+    i = np.arange(n)
+    k = np.clip(np.searchsorted(nodes, i, side="right") - 1, 0, len(nodes) - 2)
+    frac = (i - nodes[k]) / (nodes[k + 1] - nodes[k])
+    W = np.zeros((n, len(nodes)), dtype=np.float32)
+    W[i, k] = 1 - frac
+    W[i, k + 1] = frac
+    return W
 
 
 def _plane_texels(M: np.ndarray):
