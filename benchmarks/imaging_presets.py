@@ -28,7 +28,7 @@ from stereo_bench.config import load_rig, parse_rig
 from stereo_bench.dataset import frame_rng, render_settings
 from stereo_bench.detect import detect
 from stereo_bench.environments import PRESETS
-from stereo_bench.render import AnalyticRenderer, PixelRays
+from stereo_bench.render import AnalyticRenderer
 from stereo_bench.rig import Rig
 
 PAPER = Path(__file__).resolve().parent.parent / "configs" / "paper"

@@ -162,6 +162,16 @@ class Pattern(abc.ABC):
         x_min, y_min, x_max, y_max = self._feature_bounds_mm()
         return (x_max - x_min + 2 * self.margin_mm, y_max - y_min + 2 * self.margin_mm)
 
+    def outline_mm(self) -> np.ndarray:
+        """(4, 2) corners of the board's outline, in order around it, board frame mm."""
+        (x0, y0), (w, h) = self.texture_origin_mm, self.size_mm
+        return np.array([[x0, y0], [x0 + w, y0], [x0 + w, y0 + h], [x0, y0 + h]])
+
+    @property
+    def outline_centre_mm(self) -> np.ndarray:
+        """(2,) centre of the outline (what the board turns about when it moves)."""
+        return np.asarray(self.texture_origin_mm) + np.asarray(self.size_mm) / 2
+
     def texture_shape(self, px_per_mm: float) -> tuple[int, int]:
         """(H, W) of ``texture(px_per_mm)``: the outline, rounded up to whole texels."""
         # The 1e-9 absorbs float rounding of a whole product, which would otherwise add a texel.

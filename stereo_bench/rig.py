@@ -329,8 +329,7 @@ class Rig:
     @property
     def board_centre(self) -> np.ndarray:
         """The centre of the board's outline in its frame, (3,) mm (what it turns about)."""
-        return np.append(np.asarray(self.pattern.texture_origin_mm)
-                         + np.asarray(self.pattern.size_mm) / 2, 0.0)
+        return np.append(self.pattern.outline_centre_mm, 0.0)
 
     def board_velocity(self, cam: Camera, speed_mm_s: float) -> tuple[np.ndarray, np.ndarray]:
         """Per frame, the board's motion in ``cam``'s frame: (omega (F, 3) rad/s about the
@@ -342,10 +341,7 @@ class Rig:
         is still."""
         R, tv = self.trajectory.rotations, self.trajectory.tvecs
         centre = R @ self.board_centre + tv
-        x0, y0 = self.pattern.texture_origin_mm
-        w, h = self.pattern.size_mm
-        outline = np.array([[x0, y0, 0], [x0 + w, y0, 0], [x0 + w, y0 + h, 0], [x0, y0 + h, 0]])
-        corners = np.einsum("fij,kj->fki", R, outline) + tv[:, None]
+        corners = np.einsum("fij,kj->fki", R[:, :, :2], self.pattern.outline_mm()) + tv[:, None]
         F = len(R)
         omega, v = np.zeros((F, 3)), np.zeros((F, 3))
         seq = self.closeup_of

@@ -25,6 +25,13 @@ else of the rays themselves with the homography applied per sample (30-50 % slow
 for every sample would cost s^2 times the memory and precomputation (1.6 GB and ~5 min at s = 4
 on a 4096 x 3072 camera).
 
+Around this ideal image sits the imaging model (imaging.py; docs/imaging.md): the lamp's
+shading and highlight are painted into the frame's texture level; motion blur renders the board
+at sub-frame poses over the exposure and averages them; a board that is not its pattern
+(board_shape.py) is met exactly by each ray; defocus, lens blur, vignetting and the sensor then
+turn the irradiance into the 8-bit image. Without them (``clean``) the image is computed in
+integers exactly as before they existed.
+
 Conventions: millimetres, OpenCV pixel centres (top-left pixel centre = (0, 0)),
 ``p_cam = R @ p_board + t`` for ``cam_from_board = (R, t)``.
 """
@@ -108,7 +115,8 @@ class RenderSettings:
 
     @property
     def ideal_sensor(self) -> bool:
-        """Nothing but additive noise after the 8-bit conversion of the irradiance."""
+        """Whether the integer path serves: no motion, defocus, vignetting or photon sensor,
+        only an optional Gaussian blur and additive noise (the clean and noisy presets)."""
         return not self.motion.active and \
             self.optics.f_number is None and self.optics.corner_illumination >= 1.0 and \
             self.sensor.full_well_e is None and self.sensor.gain == 1.0 and \
@@ -241,7 +249,7 @@ class AnalyticRenderer:
             return [(R, t)]
         omega, v = (np.asarray(x, dtype=np.float64) for x in velocity)
         T = motion.exposure_ms / 1000.0
-        centre_board = np.append(self._origin + self._size / 2, 0.0)
+        centre_board = np.append(self.pattern.outline_centre_mm, 0.0)
         centre = R @ centre_board + t
 
         def pose(tau):
@@ -249,7 +257,7 @@ class AnalyticRenderer:
             Rk = dR @ R
             return Rk, centre + v * tau - Rk @ centre_board
 
-        outline = np.column_stack([self._outline_mm(), np.zeros(4)])
+        outline = np.column_stack([self.pattern.outline_mm(), np.zeros(4)])
         ends = [(outline @ Rk.T + tk) for Rk, tk in (pose(-T / 2), pose(T / 2))]
         if min(e[:, 2].min() for e in ends) <= 0:
             steps = MAX_MOTION_SUBFRAMES  # crosses the camera's plane: as fine as allowed
@@ -260,14 +268,9 @@ class AnalyticRenderer:
         return [pose(T * ((i + 0.5) / k - 0.5)) for i in range(k)]
 
     # --- geometry -----------------------------------------------------------------------------
-    def _outline_mm(self) -> np.ndarray:
-        """(4, 2) board outline corners mm, in order around the rectangle."""
-        (x0, y0), (w, h) = self._origin, self._size
-        return np.array([[x0, y0], [x0 + w, y0], [x0 + w, y0 + h], [x0, y0 + h]])
-
     def _draw_board(self, canvas: np.ndarray, R: np.ndarray, t: np.ndarray) -> list:
         """Render the board into ``canvas`` (H, W) uint16; returns the strips drawn."""
-        corners = self._outline_mm() @ R[:, :2].T + t
+        corners = self.pattern.outline_mm() @ R[:, :2].T + t
         normal_dot = R[:, 2] @ t  # > 0: the printed front faces the camera
         if corners[:, 2].max() <= 0 or abs(normal_dot) <= 1e-9 * np.linalg.norm(t):
             return []  # behind the camera, or seen exactly edge-on
@@ -357,7 +360,7 @@ class AnalyticRenderer:
                 np.moveaxis(rough, axis, 0)[1:] |= steep
                 np.moveaxis(rough, axis, 0)[:-1] |= steep
         s = np.linspace(0.0, 1.0, _OUTLINE_POINTS, endpoint=False)[:, None]
-        c = self._outline_mm()
+        c = self.pattern.outline_mm()
         edge = np.concatenate([c[i] + s * (c[(i + 1) % 4] - c[i]) for i in range(4)])
         pc = edge @ R[:, :2].T + t
         ahead = pc[:, 2] > 1e-9 * np.linalg.norm(t)
@@ -470,7 +473,7 @@ class AnalyticRenderer:
         X, Y = np.meshgrid(gx, gy)
         p = X[..., None] * R[:, 0] + Y[..., None] * R[:, 1] + t
         normal = -R[:, 2] if front else R[:, 2]  # the seen face's normal points at the camera
-        centre = R[:, :2] @ (self._origin + self._size / 2) + t
+        centre = R[:, :2] @ self.pattern.outline_centre_mm + t
         diffuse, specular = blinn_phong(p, normal, lamp, light, centre)
         size = (shape[1], shape[0])
         return (cv2.resize(diffuse.astype(np.float32), size, interpolation=cv2.INTER_LINEAR),
