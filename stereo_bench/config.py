@@ -450,7 +450,8 @@ class EnvironmentConfig(_Strict):
         for old, new in _MOVED.items():
             if old in data:
                 raise ValueError(f"{old}: now environment.{new} (see docs/imaging.md)")
-        preset = PRESETS.get(data.get("kind", "clean"))
+        kind = data.get("kind", "clean")
+        preset = PRESETS.get(kind) if isinstance(kind, str) else None
         if preset is None:
             return data  # the kind's own validator names what is expected
         merged = {**preset.settings}

@@ -302,14 +302,16 @@ def set_path(data: dict, path: str, value) -> list[tuple]:
 
 
 def _noisy(axes: list[Axis], configs: list[Configuration]) -> str | None:
-    """Why trials differ in this grid (so several are needed), or None."""
-    varied = [a.path for a in axes if a.path.split(".")[0] in ("environment", "board")
-              and not (a.path == "environment.kind" and set(a.values) == {"clean"})]
-    if varied:
-        return f"the grid sets {', '.join(varied)}"
-    noisy = [c.name for c in configs if c.config.environment.kind != "clean"]
+    """Why trials differ in this grid (so several are needed), or None: the seed draws the
+    sensor's noise (and a session's walk), so a configuration with a noisy sensor needs seeds."""
+    noisy = [c.name for c in configs
+             if c.config.environment.sensor.noise_sigma > 0
+             or c.config.environment.sensor.full_well_e is not None]
     if noisy:
-        return f"{len(noisy)} configuration(s) render with noise (e.g. {noisy[0]})"
+        return f"{len(noisy)} configuration(s) render with sensor noise (e.g. {noisy[0]})"
+    sessions = [c.name for c in configs if c.config.trajectory.kind == "session"]
+    if sessions:
+        return f"{len(sessions)} configuration(s) walk a session drawn from the seed"
     return None
 
 

@@ -302,6 +302,8 @@ def test_presets_fill_what_the_file_leaves_and_the_file_wins():
 
 @pytest.mark.parametrize("env, match", [
     ({"kind": "foggy"}, "environment.kind: .*unknown environment 'foggy'.*office"),
+    ({"kind": ["office"]}, "environment.kind"),
+    ({"kind": "office", "sensor": [1, 2]}, "environment.sensor"),
     ({"kind": "clean", "noise_sigma": 3}, "noise_sigma: now environment.sensor.noise_sigma"),
     ({"optics": {"f_number": 2.0, "focal_length_mm": 50.0, "focus_distance_mm": 40.0}},
      "focus_distance_mm"),

@@ -12,17 +12,14 @@ import yaml
 from scipy import stats
 
 from stereo_bench.cli import main
-from stereo_bench.config import ConfigError, load_rig
+from stereo_bench.config import ConfigError
 from stereo_bench.rundir import is_safe_name
 from stereo_bench.sweep import load_grid
 from stereo_bench.sweep_stats import t_interval
 
 ROOT = Path(__file__).resolve().parents[1]
 QUICKSTART = ROOT / "configs" / "quickstart.yaml"
-# The additive noise's field (under environment.sensor once the imaging model has sections).
-NOISE = ("environment.sensor.noise_sigma"
-         if isinstance(load_rig(QUICKSTART).model_dump(mode="json")["environment"].get("sensor"),
-                       dict) else "environment.noise_sigma")
+NOISE = "environment.sensor.noise_sigma"  # the additive noise's field
 
 
 def tiny_rig(tmp_path: Path, name: str = "tiny", frames: int = 8, noisy: bool = False) -> Path:
@@ -110,6 +107,9 @@ def test_default_trials_ten_when_noisy_and_an_explicit_count_wins(tmp_path):
                                trials=3)).trials == 3
     assert load_grid(grid_file(tmp_path, rigs=[rig.name],
                                axes={"trajectory.tilt_deg": [10, 30]})).trials == 1
+    # A bowed board without sensor noise renders the same images for every seed.
+    assert load_grid(grid_file(tmp_path, rigs=[rig.name],
+                               axes={"environment.board.warp_mm": [[0, 0], [1, 1]]})).trials == 1
 
 
 def test_a_name_too_long_for_a_folder_is_shortened_and_stays_unique(tmp_path):
