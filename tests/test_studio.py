@@ -267,7 +267,7 @@ def test_two_sided_board_is_detected_from_behind_at_the_front_corners():
     gt = rig.ground_truth()
     errors = {True: [], False: []}
     for c, cam in enumerate(rig.cameras[:2]):
-        renderer = AnalyticRenderer(cam, board, render_settings(cfg))
+        renderer = AnalyticRenderer(cam, board, render_settings(cfg, rig, cam))
         R, t = rig.cam_from_board(cam)
         for f in range(0, 60, 2):
             det = detect(renderer.render(R[f], t[f]), board)
