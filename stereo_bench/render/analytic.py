@@ -47,7 +47,7 @@ import numpy as np
 from scipy.special import ndtri
 
 from ..board_shape import BoardShape
-from ..camera import Camera, distort_with_jacobians, radial_fold_radius
+from ..camera import Camera, distort_with_jacobians, radial_fold_radius, rodrigues_to_matrix
 from .imaging import (MAX_MOTION_SUBFRAMES, Light, Motion, Optics, Sensor, blinn_phong, defocus,
                       expose, vignetting_gain)
 
@@ -253,7 +253,7 @@ class AnalyticRenderer:
         centre = R @ centre_board + t
 
         def pose(tau):
-            dR = cv2.Rodrigues(omega * tau)[0]
+            dR = rodrigues_to_matrix(omega * tau)
             Rk = dR @ R
             return Rk, centre + v * tau - Rk @ centre_board
 
