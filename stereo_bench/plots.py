@@ -60,7 +60,7 @@ def plot_metrics(agg: dict, path: Path) -> Path:
         _bars(axes[i], agg["rig"], "RMSE_cal mm", "RMSE_cal (mm)")
     fig.suptitle(f"mean ± std over {agg['trials']} trial(s)", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
 
@@ -96,7 +96,7 @@ def plot_residuals(trial: TrialPaths, ds: Dataset, methods: list[str], path: Pat
     else:
         ax.set_title("no method calibrated a camera", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
 
@@ -150,7 +150,7 @@ def plot_trajectory(ds: Dataset, path: Path) -> Path:
     ax.set_title(f"board trajectory ({kind}) and cameras", fontsize=9)
     ax.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
 
@@ -205,7 +205,7 @@ def plot_studio(trial: TrialPaths, ds: Dataset, path: Path) -> Path:
     raster.set_title("which camera saw the board when (lines: walk | close-ups of each "
                      "camera)", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
 
@@ -280,7 +280,9 @@ def plot_sweep_curve(curve: dict, path: Path) -> Path:
     metrics = list(curve["metrics"].values())
     cols = min(len(metrics), 2)
     rows = -(-len(metrics) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 3.8 * rows), squeeze=False)
+    many = max(len(m["lines"]) for m in metrics) > 6  # room for legends beside the panels
+    fig, axes = plt.subplots(rows, cols, figsize=((5.2 + 2.6 * many) * cols, 3.8 * rows),
+                             squeeze=False)
     for ax in axes.ravel()[len(metrics):]:
         ax.set_visible(False)
     values = curve["values"]
@@ -327,7 +329,10 @@ def plot_sweep_curve(curve: dict, path: Path) -> Path:
         ax.set_title(f"{metric['title']} ({metric['better']} is better)"
                      + (";\nintervals below the axis cut" if cut else ""), fontsize=9)
         ax.grid(True, alpha=0.3)
-        if ax.get_legend_handles_labels()[0]:
+        if len(lines) > 6:  # many lines: the legend beside the panel, not over its data
+            ax.legend(fontsize=6, loc="upper left", bbox_to_anchor=(1.01, 1.0),
+                      ncol=1 + len(lines) // 13)
+        elif ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7)
         else:
             ax.text(0.5, 0.5, "no value (failed or not run)", ha="center", va="center",
@@ -336,6 +341,6 @@ def plot_sweep_curve(curve: dict, path: Path) -> Path:
     fig.suptitle(f"{held}: mean over trials, 95 % Student-t interval", fontsize=9)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
