@@ -435,7 +435,7 @@ class AnalyticRenderer:
             lit = cv2.multiply(inner, diffuse, dtype=cv2.CV_32F)
             if st.light.specular > 0:
                 lit += specular * np.float32(st.white_level * 256)
-            inner[...] = np.clip(lit, 0, 65535)
+            inner[...] = np.rint(np.clip(lit, 0, 65535))  # to the nearest 1/256 level
         return _Level(image, level.px_per_mm, level.texel_offset)
 
     def _rasterize(self, px_per_mm: float, back: bool = False) -> _Level:
