@@ -301,7 +301,7 @@ def set_path(data: dict, path: str, value) -> list[tuple]:
     return done
 
 
-def _noisy(axes: list[Axis], configs: list[Configuration]) -> str | None:
+def _noisy(configs: list[Configuration]) -> str | None:
     """Why trials differ in this grid (so several are needed), or None: the seed draws the
     sensor's noise (and a session's walk), so a configuration with a noisy sensor needs seeds."""
     noisy = [c.name for c in configs
@@ -357,7 +357,7 @@ def load_grid(path) -> Sweep:
         raise ConfigError(f"{path}: configurations {twice} would run twice into one folder (a "
                           f"rig file listed twice, two with the same file name, or axis "
                           f"values that read the same in a folder name)")
-    reason = _noisy(axes, configs)
+    reason = _noisy(configs)
     if grid.trials is not None:
         trials, why = grid.trials, "trials in the grid file"
     elif reason:

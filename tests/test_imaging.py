@@ -7,30 +7,14 @@ import cv2
 import numpy as np
 import pytest
 
+from render_scene import BOARD, CENTRE, OBJ, PINHOLE, WIDE, detect
 from stereo_bench.board_shape import BoardShape
-from stereo_bench.camera import Camera, rodrigues_to_matrix
+from stereo_bench.camera import rodrigues_to_matrix
 from stereo_bench.config import ConfigError, load_rig, parse_rig
 from stereo_bench.environments import PRESETS
-from stereo_bench.patterns import Checkerboard
-from stereo_bench.render import AnalyticRenderer, PixelRays, RenderSettings
+from stereo_bench.render import AnalyticRenderer, RenderSettings
 from stereo_bench.render.imaging import (Light, Motion, Optics, Sensor, blinn_phong, disc_kernel,
                                          expose, vignetting_gain)
-
-PINHOLE = Camera("pinhole", 640, 480, 600, 600, 319.5, 239.5)
-WIDE = Camera("wide", 640, 480, 600, 450, 320, 240, 0, np.array([0.5, 0.1, 0.03, 0, 0, 0, 0, 0]))
-BOARD = Checkerboard()  # 9 x 12 squares of 15 mm
-OBJ = BOARD.object_points()
-CENTRE = 0.5 * (OBJ.min(0) + OBJ.max(0))
-SUBPIX = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 200, 1e-6)
-
-
-@pytest.fixture(scope="module")
-def rays():
-    cache = {}
-
-    def get(cam):
-        return cache.setdefault(cam.name, PixelRays(cam))
-    return get
 
 
 def frontal(depth=400.0, shift=(0.0, 0.0)):
@@ -43,15 +27,6 @@ def tilted(seed=3, depth=420.0):
     rng = np.random.default_rng(seed)
     R = rodrigues_to_matrix([rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), 0.2])
     return R, np.array([10.0, -5.0, depth]) - R @ CENTRE
-
-
-def corners(img, truth):
-    ok, c = cv2.findChessboardCorners(img, BOARD.pattern_size)
-    assert ok, "checkerboard not detected"
-    c = cv2.cornerSubPix(img, c, (5, 5), (-1, -1), SUBPIX).reshape(-1, 2).astype(float)
-    if np.linalg.norm(c[::-1] - truth, axis=1).mean() < np.linalg.norm(c - truth, axis=1).mean():
-        c = c[::-1]
-    return c
 
 
 def project(cam, R, t, points):
@@ -98,7 +73,7 @@ def test_a_warped_misprinted_board_renders_at_its_physical_corners(rays):
         for name, board, points in (("made", shape, physical), ("nominal", None, OBJ)):
             img = AnalyticRenderer(cam, BOARD, RenderSettings(board=board), rays(cam)).render(R, t)
             truth = project(cam, R, t, points)
-            err[name] = np.linalg.norm(corners(img, truth) - truth, axis=1)
+            err[name] = np.linalg.norm(detect(img, truth) - truth, axis=1)
         nominal_off = np.linalg.norm(project(cam, R, t, OBJ) - project(cam, R, t, physical), axis=1)
         print(f"{cam.name}: detection vs truth, board as made mean {err['made'].mean():.4f} px "
               f"(max {err['made'].max():.4f}), nominal board {err['nominal'].mean():.4f} px "
@@ -162,7 +137,9 @@ def test_uniform_defocus_is_a_disc_convolution(rays):
 
 
 def test_vignetting_reaches_the_corner_illumination():
-    xy = PINHOLE.unproject(np.array([[0.0, 0.0], [319.5, 239.5], [639.0, 479.0]]))
+    # The top-left corner, the principal point and the corner's mirror image through it.
+    c = np.array([PINHOLE.cx, PINHOLE.cy])
+    xy = PINHOLE.unproject(np.array([[0.0, 0.0], c, 2 * c]))
     r2 = float(np.sum(xy[0] ** 2))
     g = vignetting_gain(xy, 0.6, r2)
     assert g[0] == pytest.approx(0.6, rel=1e-6) and g[2] == pytest.approx(0.6, rel=1e-6)
@@ -180,7 +157,7 @@ def test_lens_defocus_leaves_corners_unbiased(rays):
     img = AnalyticRenderer(PINHOLE, BOARD, RenderSettings(optics=optics),
                            rays(PINHOLE)).render(R, t)
     truth = project(PINHOLE, R, t, OBJ)
-    err = corners(img, truth) - truth
+    err = detect(img, truth) - truth
     print(f"defocused corners: mean |e| {np.linalg.norm(err, axis=1).mean():.4f} px, "
           f"bias {err.mean(0)}")
     assert np.linalg.norm(err, axis=1).mean() < 0.06 and np.abs(err.mean(0)).max() < 0.03
@@ -215,7 +192,7 @@ def test_motion_blur_keeps_the_truth_at_mid_exposure(rays):
                                 rays(PINHOLE))
     img = renderer.render(R, t, velocity=(omega, v))
     truth = project(PINHOLE, R, t, OBJ)
-    err = np.linalg.norm(corners(img, truth) - truth, axis=1)
+    err = np.linalg.norm(detect(img, truth) - truth, axis=1)
     print(f"motion-blurred corners: mean {err.mean():.4f} px, max {err.max():.4f} px")
     assert err.mean() < 0.05
 

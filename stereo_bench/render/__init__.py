@@ -1,8 +1,9 @@
 """Rendering backends behind one interface.
 
-``Renderer(camera, pattern, settings).render(R, t, rng)`` returns the (H, W) uint8 image of the
-board at ``cam_from_board = (R, t)``. The default backend is :mod:`.analytic` (exact ray-plane
-geometry through the camera model, anti-aliased, fast).
+``Renderer(camera, pattern, settings).render(R, t, rng, velocity)`` returns the (H, W) uint8
+image of the board at ``cam_from_board = (R, t)``. The default backend is :mod:`.analytic`
+(exact ray-plane geometry through the camera model, anti-aliased, fast), which carries the
+imaging model of :mod:`.imaging`.
 """
 
 from .analytic import AnalyticRenderer, PixelRays, RenderSettings, gaussian_noise

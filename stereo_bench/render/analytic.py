@@ -198,6 +198,7 @@ class AnalyticRenderer:
         self._origin = np.asarray(pattern.texture_origin_mm, dtype=np.float64)
         self._size = np.asarray(pattern.size_mm, dtype=np.float64)
         self._levels: OrderedDict[int, _Level] = OrderedDict()
+        self._vignette: np.ndarray | None = None  # built on first use (_vignetting)
 
     # --- public -------------------------------------------------------------------------------
     def render(self, R: np.ndarray, t: np.ndarray, rng: np.random.Generator | None = None,
@@ -432,10 +433,12 @@ class AnalyticRenderer:
             inner[...] = round(st.white_level * 256)
         if not st.light.uniform:
             diffuse, specular = self._shading(inner.shape, R, t, front)
-            lit = cv2.multiply(inner, diffuse, dtype=cv2.CV_32F)
-            if st.light.specular > 0:
+            if specular is None:  # one pass, rounded and saturated by OpenCV
+                inner[...] = cv2.multiply(inner, diffuse, dtype=cv2.CV_16U)
+            else:
+                lit = cv2.multiply(inner, diffuse, dtype=cv2.CV_32F)
                 lit += specular * np.float32(st.white_level * 256)
-            inner[...] = np.rint(np.clip(lit, 0, 65535))  # to the nearest 1/256 level
+                inner[...] = np.rint(np.clip(lit, 0, 65535))  # to the nearest 1/256 level
         return _Level(image, level.px_per_mm, level.texel_offset)
 
     def _rasterize(self, px_per_mm: float, back: bool = False) -> _Level:
@@ -457,10 +460,10 @@ class AnalyticRenderer:
         # Texel (j, i) centre is at origin + (j + 0.5, i + 0.5) / px_per_mm, before padding.
         return _Level(image, px_per_mm, self._origin * px_per_mm + 0.5 - _PAD)
 
-    def _shading(self, shape, R, t, front: bool) -> tuple[np.ndarray, np.ndarray]:
+    def _shading(self, shape, R, t, front: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """(diffuse gain, specular share), each (H, W) float32 over the level's texels
         (imaging.blinn_phong), computed on a 64 x 64 grid over the board and interpolated
-        (both vary smoothly at the shininess a print has).
+        (both vary smoothly at the shininess a print has); specular None for a matte print.
 
         The lamp sits ``light.distance_mm`` from the world origin against its direction."""
         light, cam = self.settings.light, self.camera
@@ -476,8 +479,10 @@ class AnalyticRenderer:
         centre = R[:, :2] @ self.pattern.outline_centre_mm + t
         diffuse, specular = blinn_phong(p, normal, lamp, light, centre)
         size = (shape[1], shape[0])
-        return (cv2.resize(diffuse.astype(np.float32), size, interpolation=cv2.INTER_LINEAR),
-                cv2.resize(specular.astype(np.float32), size, interpolation=cv2.INTER_LINEAR))
+
+        def texels(gain):
+            return cv2.resize(gain.astype(np.float32), size, interpolation=cv2.INTER_LINEAR)
+        return texels(diffuse), texels(specular) if light.specular > 0 else None
 
     # --- sensor -------------------------------------------------------------------------------
     def _finish(self, canvas: np.ndarray, strips: list, rng, R, t) -> np.ndarray:
@@ -541,7 +546,7 @@ class AnalyticRenderer:
 
     def _vignetting(self) -> np.ndarray:
         """(H, W) float32 relative illumination of each pixel (built once per renderer)."""
-        if getattr(self, "_vignette", None) is None:
+        if self._vignette is None:
             xy = self.rays.xy[1:-1, 1:-1]
             corners = xy[[0, 0, -1, -1], [0, -1, 0, -1]].astype(np.float64)
             self._vignette = vignetting_gain(xy, self.settings.optics.corner_illumination,
