@@ -1,6 +1,10 @@
 """Detect, calibrate every camera of a dataset with every method, and score against the truth.
 
-This is the stage behind ``stereo-bench calibrate``. It writes, in a trial's folder (paths built by
+Detection (``load_or_detect``) and calibration (``calibrate_cameras``) read only what a real
+capture has too (cameras' names and image sizes, frames, images, the board), so a real capture
+(``image_folders.ImageFolders``, ``stereo-bench calibrate-images``) runs the very same stages;
+only ``evaluate_dataset``'s scoring against the truth (``score``, ``detection_errors``) is
+synthetic. This is the stage behind ``stereo-bench calibrate``. It writes, in a trial's folder (paths built by
 ``rundir.TrialPaths``)::
 
     detections/<camera>.npz, done.json      detections; done.json marks them complete and holds
@@ -18,6 +22,7 @@ from __future__ import annotations
 
 import shutil
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -102,24 +107,32 @@ def load_or_detect(ds: Dataset, trial: TrialPaths, progress=None,
     return dets, seconds, fp
 
 
+def summary(result: CalibrationResult, obs: Observations) -> dict:
+    """What one calibration says of itself, without any truth: its fit to the detections, where
+    its model can be used, how much data it saw, and its log."""
+    return {
+        "rpe_rms_px": rpe_rms(result.camera, result.rvecs, result.tvecs, obs.object_points,
+                              obs.image_points),
+        "validity": validity(result.camera),
+        "views": obs.n_views,
+        "points": obs.n_points,
+        "log": strict(result.log),
+    }
+
+
 def score(result: CalibrationResult, obs: Observations, truth: Camera,
           true_cam_from_board: tuple[np.ndarray, np.ndarray]) -> dict:
-    """Every accuracy number of one calibration against the true camera."""
+    """Every accuracy number of one calibration against the true camera (the scoring step:
+    the only one a real capture lacks)."""
     R, t = true_cam_from_board
     views = np.array(obs.view_ids)
     est = result.camera
     poses = pose_errors(result.rvecs, result.tvecs, matrix_to_rodrigues(R[views]), t[views])
     return {
-        "rpe_rms_px": rpe_rms(est, result.rvecs, result.tvecs, obs.object_points,
-                              obs.image_points),
         "paper_rmse": parameter_rmse(est, truth),
         "parameter_errors": parameter_errors(est, truth),
         "projection_difference": projection_difference(est, truth),
-        "validity": validity(est),
         "board_pose": {k: v for k, v in poses.items() if not isinstance(v, list)},
-        "views": obs.n_views,
-        "points": obs.n_points,
-        "log": strict(result.log),
     }
 
 
@@ -150,6 +163,60 @@ def intrinsics_frames(ds: Dataset, camera: int, calibration: CalibrationConfig) 
     return np.ones(ds.frames, bool)
 
 
+@dataclass(frozen=True, eq=False)
+class Estimate:
+    """One camera's calibration by one method and the views it came from."""
+
+    result: CalibrationResult
+    obs: Observations
+
+
+def calibrate_cameras(source, dets: list[CameraDetections], methods: list[str],
+                      trial: TrialPaths, calibration: CalibrationConfig
+                      ) -> tuple[dict, dict[tuple[str, str], Estimate], dict]:
+    """Calibrate every camera of ``source`` (a rendered ``Dataset`` or a real capture's
+    ``ImageFolders``: they share this stage) with every method, saving each estimate under
+    ``trial``.
+
+    Returns ``entries[method][camera]`` (``summary`` plus the wall time, or ``{"error": ...}``),
+    the estimates by (method, camera), and per camera the found views left out with the reason
+    (``observations``) or, when the camera has no usable view, the reason as a string.
+    """
+    entries = {m: {} for m in methods}
+    estimates, left_out = {}, {}
+    for c, (cam, det) in enumerate(zip(source.cameras, dets)):
+        try:
+            obs, dropped = observations(det, source.object_points, cam,
+                                        intrinsics_frames(source, c, calibration))
+            left_out[cam.name] = dropped
+        except ValueError as e:
+            left_out[cam.name] = str(e)
+            for m in methods:
+                entries[m][cam.name] = {"error": str(e)}
+            continue
+        for m in methods:
+            t0 = time.perf_counter()
+            try:
+                result = get_calibrator(m).calibrate(obs)
+                result = CalibrationResult(result.camera.with_params(name=cam.name),
+                                           result.rvecs, result.tvecs, result.log)
+                save_calibration(result, obs, trial, m)
+                entry = summary(result, obs)
+                estimates[m, cam.name] = Estimate(result, obs)
+            except (ValueError, np.linalg.LinAlgError, RuntimeError) as e:
+                entry = {"error": f"{type(e).__name__}: {e}"}
+            entry["wall_time_s"] = time.perf_counter() - t0
+            entries[m][cam.name] = entry
+    return entries, estimates, left_out
+
+
+def clear_calibrations(trial: TrialPaths) -> None:
+    """Estimates of an earlier calibration must not outlive it: a camera that fails now would
+    otherwise leave its old estimate where the plots and the rig stage look for it."""
+    trial.metrics.unlink(missing_ok=True)
+    shutil.rmtree(trial.all_calibrations, ignore_errors=True)
+
+
 def evaluate_dataset(ds: Dataset, methods: list[str], trial: TrialPaths,
                      calibration: CalibrationConfig, progress=None,
                      notes: Notes | None = None) -> dict:
@@ -159,20 +226,19 @@ def evaluate_dataset(ds: Dataset, methods: list[str], trial: TrialPaths,
     may have changed since the images were rendered; the dataset does not hold them).
 
     Returns the dict written to ``trial.metrics``: ``detection[camera]`` (rate and error
-    against the truth), ``calibration[method][camera]`` (see ``score``, or ``{"error": ...}``),
-    ``fingerprint`` (of the detections and the methods: what a rerun must match to reuse it).
+    against the truth), ``calibration[method][camera]`` (``summary`` and ``score``, or
+    ``{"error": ...}``), ``fingerprint`` (of the detections and the methods: what a rerun must
+    match to reuse it).
     """
     for m in methods:  # fail early on a typo, before any work
         get_calibrator(m)
     dets, detect_s, det_fp = load_or_detect(ds, trial, progress, notes)
-    # Estimates of an earlier calibration must not outlive it: a camera that fails now would
-    # otherwise leave its old estimate where the plots and the rig stage look for it.
-    trial.metrics.unlink(missing_ok=True)
-    shutil.rmtree(trial.all_calibrations, ignore_errors=True)
+    clear_calibrations(trial)
     start = time.perf_counter()
     gt = ds.ground_truth
     rig = ds.rig()
     inside = ds.root.resolve().is_relative_to(trial.root.resolve())
+    entries, estimates, left_out = calibrate_cameras(ds, dets, methods, trial, calibration)
     report = {"fingerprint": metrics_fingerprint(det_fp, methods, calibration),
               "intrinsics_views": calibration.intrinsics_views,
               # Relative inside the trial, so that two runs into different folders agree.
@@ -182,31 +248,18 @@ def evaluate_dataset(ds: Dataset, methods: list[str], trial: TrialPaths,
               "pattern": ds.config.pattern.kind, "environment": ds.config.environment.kind,
               "cameras": [c.name for c in ds.cameras], "methods": methods,
               "warnings": ds.warnings,
-              "detection": {}, "calibration": {m: {} for m in methods},
+              "detection": {}, "calibration": entries,
               "timing": {"detect_s": detect_s}}
     for c, (cam, det) in enumerate(zip(ds.cameras, dets)):
         report["detection"][cam.name] = detection_errors(det, gt.points[c], gt.visible[c])
+        if isinstance(left_out[cam.name], dict):
+            report["detection"][cam.name]["views_left_out"] = left_out[cam.name]
         truth = cam.with_params(rvec=np.zeros(3), tvec=np.zeros(3))
-        try:
-            obs, dropped = observations(det, ds.object_points, cam,
-                                        intrinsics_frames(ds, c, calibration))
-            report["detection"][cam.name]["views_left_out"] = dropped
-        except ValueError as e:
-            for m in methods:
-                report["calibration"][m][cam.name] = {"error": str(e)}
-            continue
         for m in methods:
-            t0 = time.perf_counter()
-            try:
-                result = get_calibrator(m).calibrate(obs)
-                result = CalibrationResult(result.camera.with_params(name=cam.name),
-                                           result.rvecs, result.tvecs, result.log)
-                save_calibration(result, obs, trial, m)
-                entry = score(result, obs, truth, rig.cam_from_board(cam))
-            except (ValueError, np.linalg.LinAlgError, RuntimeError) as e:
-                entry = {"error": f"{type(e).__name__}: {e}"}
-            entry["wall_time_s"] = time.perf_counter() - t0
-            report["calibration"][m][cam.name] = entry
+            if (m, cam.name) in estimates:
+                est = estimates[m, cam.name]
+                entries[m][cam.name].update(score(est.result, est.obs, truth,
+                                                  rig.cam_from_board(cam)))
     report["timing"]["calibrate_s"] = time.perf_counter() - start
     write_json(trial.metrics, report)
     return strict(report)

@@ -29,7 +29,8 @@ from .evaluate import (detections_fingerprint, evaluate_dataset, metrics_fingerp
 from .rig import volume_centre
 from .rundir import (Notes, RunPaths, TrialPaths, UnreadableFileError, fingerprint, locked,
                      read_json, reusable, strict, write_json)
-from .stereo import aligned_rig_errors, calibrate_rig, planar_pose, rig_errors
+from .stereo import (RigCalibration, aligned_rig_errors, calibrate_rig, planar_pose, rig_errors,
+                     similarity_transform)
 from .triangulate import triangulate
 from .workers import process_pool
 
@@ -70,39 +71,114 @@ def _by_region(true_pts: np.ndarray, err: np.ndarray, centre: np.ndarray) -> lis
     return rows
 
 
-def rig_calibration(ds: Dataset, trial: TrialPaths, method: str,
-                    calibration: CalibrationConfig) -> dict:
-    """Calibrate the rig from one method's per-camera estimates and score it against the truth.
-
-    RMSE_cal (paper Sec. 4.2): the board's feature points triangulated in every frame through the
-    estimated rig (DLT then reprojection refinement) against their true positions, both in the
-    reference camera's frame, in mm, over the whole volume and per shell of distance from its
-    centre (the point nearest every camera's axis for a studio, else the mean board point);
-    ``centre_rmse_mm`` does the same for the board's centre (the mean of the points triangulated
-    in a frame against the mean of the same points' truth). Per camera: rotation and centre errors with
-    the reference camera fixed, and again after a similarity alignment (3+ cameras), beside the
-    reprojection error, so that a low reprojection error cannot hide a wrong geometry.
-    """
-    dets = [CameraDetections.load(trial.detection(c.name)) for c in ds.cameras]
+def rig_of(source, trial: TrialPaths, method: str, calibration: CalibrationConfig
+           ) -> tuple[RigCalibration, np.ndarray]:
+    """The rig calibration of one method's per-camera estimates (saved under ``trial`` by
+    evaluate.calibrate_cameras) and the detections it used, (C, F, N, 2) px. ``source`` is a
+    rendered ``Dataset`` or a real capture: this stage does not know which."""
+    dets = [CameraDetections.load(trial.detection(c.name)) for c in source.cameras]
     cams, rv, tv = [], [], []
-    for cam, det in zip(ds.cameras, dets):
+    for cam, det in zip(source.cameras, dets):
         est = Camera.load_json(trial.calibration(method, cam.name))
-        r, t = _board_poses(ds, trial, method, est, det)
+        r, t = _board_poses(source, trial, method, est, det)
         cams.append(est)
         rv.append(r)
         tv.append(t)
     image_points = np.stack([d.points for d in dets])
     found = np.stack([d.found for d in dets])
     params = get_calibrator(method).model_parameters if calibration.refine_intrinsics else None
-    rig = calibrate_rig(cams, ds.object_points, image_points, np.stack(rv), np.stack(tv), found,
-                        refine_intrinsics=[params] * len(cams) if params else None,
+    rig = calibrate_rig(cams, source.object_points, image_points, np.stack(rv), np.stack(tv),
+                        found, refine_intrinsics=[params] * len(cams) if params else None,
                         loss=calibration.loss, loss_scale_px=calibration.loss_scale_px)
+    return rig, image_points
 
-    # Truth in the true reference camera's frame.
+
+def triangulated_board(rig: RigCalibration, image_points: np.ndarray
+                       ) -> tuple[np.ndarray, dict[str, int]]:
+    """The board's points triangulated in every frame through the rig, (F, N, 3) mm in the
+    reference camera's frame (NaN where fewer than two cameras saw them), and per camera the
+    number of detections it could not use: those where its estimated distortion has no unique
+    ray (an overfitted model folds inside the image, TRAPS.md); they are masked, not fatal."""
+    pts = image_points.copy()
+    dropped = {}
+    for c, cam in enumerate(rig.cameras):
+        seen = np.isfinite(pts[c]).all(-1)
+        bad = seen.copy()
+        bad[seen] = ~cam.invertible(pts[c][seen])
+        pts[c][bad] = np.nan
+        dropped[cam.name] = int(bad.sum())
+    return triangulate(rig.cameras, pts), dropped
+
+
+def board_geometry(points: np.ndarray, object_points: np.ndarray) -> dict:
+    """How well the triangulated board keeps its known shape, which needs no truth: per frame
+    with at least MIN_POINTS_PER_VIEW triangulated points, the rigid motion that best maps the
+    board's layout onto them; ``rmse_mm`` is the RMS distance left (wrong intrinsics or a wrong
+    rig bend the board), and ``scale_error_pct`` the mean size error of the triangulated board
+    from a similarity fit (a wrong baseline scales it)."""
+    resid, scales = [], []
+    for frame in points:
+        ok = np.isfinite(frame).all(-1)
+        if ok.sum() < MIN_POINTS_PER_VIEW:
+            continue
+        try:
+            s, R, t = similarity_transform(object_points[ok], frame[ok])
+            _, R1, t1 = similarity_transform(object_points[ok], frame[ok], scale=False)
+        except ValueError:  # points on a line fix no pose
+            continue
+        resid.append(np.linalg.norm(object_points[ok] @ R1.T + t1 - frame[ok], axis=-1))
+        scales.append(s)
+    if not resid:
+        return {"frames": 0, "rmse_mm": None, "scale_error_pct": None}
+    r = np.concatenate(resid)
+    return {"frames": len(resid), "rmse_mm": float(np.sqrt(np.mean(r**2))),
+            "max_mm": float(r.max()), "scale_error_pct": float(100 * (np.mean(scales) - 1))}
+
+
+def rig_summary(rig: RigCalibration, image_points: np.ndarray, object_points: np.ndarray,
+                method: str, calibration: CalibrationConfig) -> tuple[dict, np.ndarray]:
+    """What a rig calibration says of itself, without any truth, and its triangulated board
+    (``triangulated_board``), which the scoring step compares with the truth."""
+    points, dropped = triangulated_board(rig, image_points)
+    entry = {
+        "method": method,
+        "reference": rig.cameras[0].name,
+        "cameras": [c.to_dict() for c in rig.cameras],
+        "rms_px": rig.rms_px,
+        "rms_px_per_camera": rig.rms_px_per_camera,
+        "frames_used": int(rig.frames_used.sum()),
+        "iterations": rig.iterations,
+        "time_s": rig.time_s,
+        # cam_from_cam0 of each camera, as a user reads a rig: baseline and relative rotation.
+        "baseline_mm": {c.name: float(np.linalg.norm(c.center)) for c in rig.cameras},
+        "rotation_deg": {c.name: float(np.degrees(np.linalg.norm(c.rvec)))
+                         for c in rig.cameras},
+        "board_geometry": board_geometry(points, object_points),
+        "detections_outside_model": dropped,
+        "log": rig.log,
+    }
+    if calibration.refine_intrinsics and not get_calibrator(method).model_parameters:
+        entry["note"] = (f"{method}'s model is not a subset of OpenCV's: its intrinsics stay as "
+                         f"estimated in the rig's bundle adjustment (calibration."
+                         f"refine_intrinsics)")
+    return entry, points
+
+
+def score_rig(rig: RigCalibration, est_pts: np.ndarray, ds: Dataset) -> dict:
+    """A rig calibration against the truth (the scoring step).
+
+    RMSE_cal (paper Sec. 4.2): the board's feature points triangulated in every frame through the
+    estimated rig (DLT then reprojection refinement) against their true positions, both in the
+    reference camera's frame, in mm, over the whole volume and per shell of distance from its
+    centre (the point nearest every camera's axis for a studio, else the mean board point);
+    ``centre_rmse_mm`` does the same for the board's centre (the mean of the points triangulated
+    in a frame against the mean of the same points' truth). Per camera: rotation and centre errors
+    with the reference camera fixed, and again after a similarity alignment (3+ cameras), beside
+    the reprojection error, so that a low reprojection error cannot hide a wrong geometry.
+    """
     truth = ds.cameras
     world_pts = ds.rig().board_points_world()  # (F, N, 3)
     true_pts = truth[0].world_to_cam(world_pts)
-    est_pts = triangulate(rig.cameras, image_points)  # NaN where fewer than two views
     ok = np.all(np.isfinite(est_pts), axis=-1)
     err = np.linalg.norm(est_pts - true_pts, axis=-1)[ok]
     # Per frame, the centroid of the points triangulated in it against the centroid of the same
@@ -117,14 +193,6 @@ def rig_calibration(ds: Dataset, trial: TrialPaths, method: str,
         centre = true_pts.reshape(-1, 3).mean(0)
     errors = rig_errors(rig.cameras, truth)
     entry = {
-        "method": method,
-        "reference": truth[0].name,
-        "cameras": [c.to_dict() for c in rig.cameras],
-        "rms_px": rig.rms_px,
-        "rms_px_per_camera": rig.rms_px_per_camera,
-        "frames_used": int(rig.frames_used.sum()),
-        "iterations": rig.iterations,
-        "time_s": rig.time_s,
         "rmse_cal_mm": float(np.sqrt(np.mean(err**2))) if len(err) else float("nan"),
         "mean_error_mm": float(err.mean()) if len(err) else float("nan"),
         "max_error_mm": float(err.max()) if len(err) else float("nan"),
@@ -137,12 +205,7 @@ def rig_calibration(ds: Dataset, trial: TrialPaths, method: str,
                                    "centre_mm": float(errors["centre_mm"][i]),
                                    "rms_px": float(rig.rms_px_per_camera[i])}
                           for i, c in enumerate(truth)},
-        "log": rig.log,
     }
-    if calibration.refine_intrinsics and not params:
-        entry["note"] = (f"{method}'s model is not a subset of OpenCV's: its intrinsics stay as "
-                         f"estimated in the rig's bundle adjustment (calibration."
-                         f"refine_intrinsics)")
     try:
         aligned = aligned_rig_errors(rig.cameras, truth)
         entry["aligned"] = {"scale": aligned["scale"], "cameras": {
@@ -151,6 +214,16 @@ def rig_calibration(ds: Dataset, trial: TrialPaths, method: str,
     except ValueError as e:
         entry["aligned"] = None
         entry["aligned_reason"] = str(e)
+    return entry
+
+
+def rig_calibration(ds: Dataset, trial: TrialPaths, method: str,
+                    calibration: CalibrationConfig) -> dict:
+    """Calibrate the rig from one method's per-camera estimates (``rig_of``, ``rig_summary``:
+    shared with real captures) and score it against the truth (``score_rig``)."""
+    rig, image_points = rig_of(ds, trial, method, calibration)
+    entry, points = rig_summary(rig, image_points, ds.object_points, method, calibration)
+    entry.update(score_rig(rig, points, ds))
     return entry
 
 

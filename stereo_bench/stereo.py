@@ -456,10 +456,12 @@ def rig_errors(estimated: Sequence[Camera], truth: Sequence[Camera]) -> dict[str
             "centre_mm": np.linalg.norm(centre_e - centre_t, axis=-1)}
 
 
-def similarity_transform(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+def similarity_transform(src: np.ndarray, dst: np.ndarray, scale: bool = True
+                         ) -> tuple[float, np.ndarray, np.ndarray]:
     """(s, R, t) minimizing sum |s R src_i + t - dst_i|^2 over points (K, 3), K >= 3 not on a
     line (Umeyama, "Least-squares estimation of transformation parameters between two point
-    patterns", PAMI 1991, eq. 40-42)."""
+    patterns", PAMI 1991, eq. 40-42); ``scale=False``: the rigid motion (s = 1), whose
+    rotation is the same."""
     mu_s, mu_d = src.mean(0), dst.mean(0)
     a, b = src - mu_s, dst - mu_d
     var = np.mean(np.sum(a * a, axis=1))
@@ -468,7 +470,7 @@ def similarity_transform(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.nd
         raise ValueError("similarity_transform: expected at least 3 points not on a line")
     S = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
     R = U @ S @ Vt
-    s = float(np.trace(np.diag(D) @ S) / var)
+    s = float(np.trace(np.diag(D) @ S) / var) if scale else 1.0
     return s, R, mu_d - s * R @ mu_s
 
 
