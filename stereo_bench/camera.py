@@ -25,7 +25,6 @@ import functools
 import math
 
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 
 import numpy as np
 
@@ -541,41 +540,3 @@ class Camera:
         except OSError as e:
             raise ValueError(f"{path}: cannot read camera JSON ({e})") from None
         return cls.from_dict(d, source=str(path))
-
-    def save_opencv_yaml(self, path) -> None:
-        """OpenCV FileStorage YAML with the keys of OpenCV's calibration sample."""
-        import cv2
-
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
-        fs.write("camera_name", self.name)
-        fs.write("image_width", self.width)
-        fs.write("image_height", self.height)
-        fs.write("camera_matrix", self.K)
-        fs.write("distortion_coefficients", self.dist.reshape(1, 8))
-        fs.write("rvec_cam_from_world", self.rvec.reshape(3, 1))
-        fs.write("tvec_cam_from_world", self.tvec.reshape(3, 1))
-        fs.release()
-
-    @classmethod
-    def load_opencv_yaml(cls, path) -> "Camera":
-        import cv2
-
-        if not Path(path).is_file():
-            raise ValueError(f"{path}: no such OpenCV YAML file")
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-        try:
-            K = fs.getNode("camera_matrix").mat()
-            dist = fs.getNode("distortion_coefficients").mat()
-            if K is None or dist is None:
-                raise ValueError(f"{path}: expected nodes 'camera_matrix' and "
-                                 f"'distortion_coefficients'")
-            name_node = fs.getNode("camera_name")
-            name = name_node.string() if not name_node.empty() else Path(path).stem
-            rv, tv = fs.getNode("rvec_cam_from_world"), fs.getNode("tvec_cam_from_world")
-            return cls.from_K(
-                name, int(fs.getNode("image_width").real()), int(fs.getNode("image_height").real()),
-                K, dist.reshape(-1),
-                rv.mat().reshape(-1) if not rv.empty() else np.zeros(3),
-                tv.mat().reshape(-1) if not tv.empty() else np.zeros(3))
-        finally:
-            fs.release()

@@ -165,6 +165,119 @@ def cmd_sweep(args) -> int:
     return 0
 
 
+# The board as users describe it, per option: the kinds it applies to and the rig file's field.
+_BOARD_OPTIONS = {
+    "inner_corners": ("checkerboard",),
+    "squares": ("checkerboard", "charuco"),
+    "circles": ("symmetric_circles", "asymmetric_circles"),
+    "square_mm": ("checkerboard", "charuco"),
+    "marker_mm": ("charuco",),
+    "dictionary": ("charuco",),
+    "spacing_mm": ("symmetric_circles", "asymmetric_circles"),
+    "diameter_mm": ("symmetric_circles", "asymmetric_circles"),
+}
+
+
+def _grid_size(option: str, text: str) -> tuple[int, int]:
+    try:
+        cols, rows = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"--{option.replace('_', '-')}: expected COLUMNSxROWS such as 9x6, got "
+                         f"{text!r}") from None
+    return cols, rows
+
+
+def board_from_args(args):
+    """The board of ``calibrate-images`` from its options (or --board-file), validated by the
+    rig file's own schema (config.PatternConfig), so both name the same fields."""
+    import yaml
+
+    from .config import PatternConfig
+
+    if args.board_file:
+        with open(args.board_file) as f:
+            data = yaml.safe_load(f)
+        data = data.get("pattern", data) if isinstance(data, dict) else data
+        source = args.board_file
+    else:
+        if not args.board:
+            raise ValueError("--board: expected the board's kind (checkerboard, charuco, "
+                             "symmetric_circles or asymmetric_circles) or --board-file")
+        kind, data = args.board, {"kind": args.board}
+        for option, kinds in _BOARD_OPTIONS.items():
+            value = getattr(args, option)
+            if value is None:
+                continue
+            if kind not in kinds:
+                raise ValueError(f"--{option.replace('_', '-')}: not an option of a {kind} "
+                                 f"(it applies to {', '.join(kinds)})")
+            if option == "inner_corners":
+                data["inner_corners"] = list(_grid_size(option, value))
+            elif option == "squares":
+                data["squares_x"], data["squares_y"] = _grid_size(option, value)
+            elif option == "circles":
+                data["cols"], data["rows"] = _grid_size(option, value)
+            elif option == "spacing_mm" and kind == "asymmetric_circles":
+                # OpenCV's squareSize of this grid: the row pitch, half the pitch in a row.
+                data["diagonal_spacing_mm"] = value * 2 ** 0.5
+            else:
+                data[option] = value
+        source = "the --board options"
+    try:
+        return PatternConfig.model_validate(data).build()
+    except Exception as e:  # pydantic's ValidationError or the board's own ValueError
+        raise ValueError(f"{source}: {e}") from None
+
+
+def _camera_folders(specs: list[str]) -> dict[str, str]:
+    """NAME=FOLDER (or glob); a bare folder is named after itself."""
+    cameras = {}
+    for spec in specs:
+        name, sep, where = spec.partition("=")
+        if not sep:
+            name, where = Path(spec.rstrip("/")).name, spec
+        if name in cameras:
+            raise ValueError(f"camera {name!r} given twice; name them: NAME=FOLDER")
+        cameras[name] = where
+    return cameras
+
+
+def cmd_calibrate_images(args) -> int:
+    from .capture import calibrate_capture
+    from .config import CalibrationConfig
+    from .image_folders import ImageFolders
+    from .report import capture_markdown
+    from .rundir import CapturePaths, write_text
+
+    methods = _methods(args.methods)
+    pattern = board_from_args(args)
+    source = ImageFolders.open(_camera_folders(args.cameras), pattern)
+    out = Path(args.out or Path("out") / "capture")
+    calibration = CalibrationConfig(refine_intrinsics=args.refine_intrinsics)
+    if not 2 <= args.folds <= 100:
+        raise ValueError(f"--folds: expected 2..100, got {args.folds}")
+    console.print(f"{len(source.cameras)} camera(s), {source.frames} frames: "
+                  + ", ".join(f"{c.name} {c.width}x{c.height}" for c in source.cameras),
+                  markup=False, highlight=False)
+    with locked(out), progress_bar() as bar:
+        task = bar.add_task("detect", total=None)
+        results = calibrate_capture(source, methods, out, calibration, args.folds,
+                                    progress=lambda d, n: bar.update(task, completed=d, total=n))
+    paths = CapturePaths(out)
+    text = capture_markdown(results, f"Calibration of {', '.join(args.cameras)}")
+    write_text(paths.report, text)
+    console.print(text, markup=False, soft_wrap=True, highlight=False)
+    _warn(results["warnings"] + results["notes"])
+    done = [e for cams in results["calibration"].values() for e in cams.values()
+            if "error" not in e]
+    if not done:
+        say("error", "red", f"no camera could be calibrated with any method; wrote {out}")
+        return 1
+    console.print(f"wrote {paths.results}, {paths.report}; estimates in "
+                  f"{paths.trial.all_calibrations}", markup=False, highlight=False)
+    return 0
+
+
 def _trial_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--methods", default="zhang,tsai,bouguet,opencv",
                    help="comma-separated methods (default: %(default)s; also opencv-rational)")
@@ -209,6 +322,45 @@ def build_parser() -> argparse.ArgumentParser:
     u.add_argument("--out", help="run directory (default: out/<rig name>)")
     _trial_options(u)
     u.set_defaults(func=cmd_run)
+
+    i = sub.add_parser("calibrate-images",
+                       help="calibrate your own images (one folder per camera) with every method",
+                       description="Detect the board in each camera's images, calibrate every "
+                                   "camera with every method and, for two or more cameras, the "
+                                   "rig; report what can be known without ground truth "
+                                   "(RPE per view, held-out error, uncertainty, agreement "
+                                   "between methods, coverage, flagged views). Frames pair "
+                                   "across cameras by the last number in the file name.")
+    i.add_argument("cameras", nargs="+", metavar="NAME=FOLDER",
+                   help="a camera's folder of JPEG/PNG/TIFF images, or a quoted glob such as "
+                        "left='data/left*.jpg'; a bare folder is named after itself")
+    i.add_argument("--board", choices=["checkerboard", "charuco", "symmetric_circles",
+                                       "asymmetric_circles"], help="the board's kind")
+    i.add_argument("--board-file", help="a YAML file with the rig file's pattern section "
+                                        "(docs/rig_format.md) instead of the options below")
+    i.add_argument("--inner-corners", dest="inner_corners", metavar="CxR",
+                   help="checkerboard: inner corners per row x rows, as OpenCV's patternSize "
+                        "(9x6 for a board of 10x7 squares)")
+    i.add_argument("--squares", metavar="CxR", help="charuco (or checkerboard): squares")
+    i.add_argument("--circles", metavar="CxR",
+                   help="circle grids: discs per row x rows (OpenCV's patternSize, e.g. 4x11)")
+    i.add_argument("--square-mm", dest="square_mm", type=float, help="square side, mm")
+    i.add_argument("--marker-mm", dest="marker_mm", type=float, help="charuco: marker side, mm")
+    i.add_argument("--dictionary", help="charuco: the cv2.aruco dictionary, e.g. DICT_5X5_100")
+    i.add_argument("--spacing-mm", dest="spacing_mm", type=float,
+                   help="circle grids: centre spacing, mm (asymmetric: OpenCV's squareSize, "
+                        "the row pitch)")
+    i.add_argument("--diameter-mm", dest="diameter_mm", type=float,
+                   help="circle grids: disc diameter, mm (default: measured from the images)")
+    i.add_argument("--methods", default="zhang,tsai,bouguet,opencv",
+                   help="comma-separated methods (default: %(default)s; also BASE-MODEL names "
+                        "such as zhang-brown, and opencv-rational)")
+    i.add_argument("--folds", type=int, default=5,
+                   help="k of the k-fold held-out error (default: %(default)s)")
+    i.add_argument("--refine-intrinsics", dest="refine_intrinsics", action="store_true",
+                   help="let the rig's bundle adjustment refine each camera's intrinsics")
+    i.add_argument("--out", help="output directory (default: out/capture)")
+    i.set_defaults(func=cmd_calibrate_images)
 
     w = sub.add_parser("sweep", help="run a grid of configurations (e.g. the paper's 40)",
                        description="Cross rig files with axes of rig-file fields (GRID.yaml, "

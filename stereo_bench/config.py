@@ -243,6 +243,28 @@ class PatternConfig(_Strict):
     model_config = ConfigDict(extra="allow", frozen=True)
     kind: PatternKind
 
+    @model_validator(mode="before")
+    @classmethod
+    def _inner_corners(cls, data):
+        """A checkerboard as users (and OpenCV's patternSize) describe it: ``inner_corners:
+        [columns, rows]``, 9 x 6 for a board of 10 x 7 squares."""
+        if not isinstance(data, dict) or "inner_corners" not in data:
+            return data
+        data = dict(data)
+        corners = data.pop("inner_corners")
+        if data.get("kind") != "checkerboard":
+            raise ValueError(f"pattern.inner_corners: only for kind checkerboard (a "
+                             f"{data.get('kind')} is described by its own fields)")
+        if {"squares_x", "squares_y"} & set(data):
+            raise ValueError("pattern.inner_corners: give it or squares_x/squares_y, not both")
+        if (not isinstance(corners, (list, tuple)) or len(corners) != 2
+                or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 2
+                           for n in corners)):
+            raise ValueError(f"pattern.inner_corners: expected [columns, rows] of inner corners, "
+                             f"each an integer of at least 2, got {corners!r}")
+        data["squares_x"], data["squares_y"] = corners[0] + 1, corners[1] + 1
+        return data
+
     @model_validator(mode="after")
     def _overrides(self):
         from .patterns import PATTERNS

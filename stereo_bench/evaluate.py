@@ -31,6 +31,7 @@ from .camera import Camera, matrix_to_rodrigues
 from .config import CalibrationConfig
 from .dataset import Dataset
 from .detect import CameraDetections, detect_dataset, detection_errors, resolve_method
+from .io import opencv_yaml
 from .metrics import (parameter_errors, parameter_rmse, pose_errors, projection_difference,
                       rpe_rms, validity)
 from .rundir import Notes, TrialPaths, fingerprint, reusable, strict, write_json, write_npz
@@ -140,7 +141,7 @@ def save_calibration(result: CalibrationResult, obs: Observations, trial: TrialP
                      method: str) -> None:
     name = result.camera.name
     result.camera.save_json(trial.calibration(method, name))
-    result.camera.save_opencv_yaml(trial.calibration_yaml(method, name))
+    opencv_yaml.write_camera(result.camera, trial.calibration_yaml(method, name))
     write_npz(trial.views(method, name), rvecs=result.rvecs, tvecs=result.tvecs,
               view_ids=np.array(obs.view_ids))
 

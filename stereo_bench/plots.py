@@ -8,6 +8,10 @@
   which camera detected the board in which frame;
 * ``projection_difference_<camera>.png``: the map over the image of how far each method's
   estimate projects the true camera's rays.
+
+A real capture (``plot_capture``) has no truth; per camera, ``capture_<camera>.png`` shows one
+method's RPE per view (flagged views in red), its residual vectors over the image, the image's
+coverage by the features, and its projection uncertainty over the image.
 """
 
 from __future__ import annotations
@@ -261,6 +265,101 @@ def plot_run(out: Path, trials: list[dict], agg: dict) -> list[Path]:
             *([plot_studio(trial, ds, folder / "studio.png")]
               if ds.config.trajectory.kind == "session" else []),
             *plot_projection_maps(trial, ds, methods, folder)]
+
+
+def primary_method(results: dict, camera: str) -> str | None:
+    """The estimate a capture's figures show: ``opencv`` when it calibrated the camera (the
+    reference users know), else the first method that did."""
+    ok = [m for m in results["methods"] if "error" not in results["calibration"][m].get(camera,
+                                                                                       {"error"})]
+    return "opencv" if "opencv" in ok else (ok[0] if ok else None)
+
+
+def plot_capture_camera(results: dict, est, frame_names: list[str], path: Path) -> Path:
+    """The four panels of ``capture_<camera>.png`` (module notes) for one Estimate."""
+    cam, obs = est.result.camera, est.obs
+    entry = results["calibration"][primary_method(results, cam.name)][cam.name]
+    diag = entry["diagnostics"]
+    fig, axes = plt.subplots(2, 2, figsize=(10, 7.2))
+    ax = axes[0, 0]
+    views = diag["views"]
+    flagged = set(views["flagged"])
+    colours = ["tab:red" if v in flagged else "tab:blue" for v in views["view_ids"]]
+    ax.bar(range(len(views["rms_px"])), views["rms_px"], color=colours)
+    ax.set_xticks(range(len(views["view_ids"])),
+                  [frame_names[v].replace("frame ", "") for v in views["view_ids"]],
+                  fontsize=6, rotation=90)
+    if views["threshold_px"] is not None:
+        ax.axhline(views["threshold_px"], color="tab:red", lw=0.8, ls="--",
+                   label=f"flag above {views['threshold_px']:.3f} px")
+        ax.legend(fontsize=7)
+    ax.set_xlabel("frame")
+    ax.set_ylabel("RPE of the view (px)")
+    ax.set_title(f"RPE per view (red: outliers); all views {views['rms_px_all']:.3f} px",
+                 fontsize=8)
+
+    ax = axes[0, 1]
+    uv = np.concatenate(obs.image_points)
+    proj = np.concatenate([project_points(o, cam.intrinsics, cam.dist, r, t) for o, r, t in
+                           zip(obs.object_points, est.result.rvecs, est.result.tvecs)])
+    res = uv - proj
+    norm = np.linalg.norm(res, axis=1)
+    scale = 0.05 * max(cam.width, cam.height) / max(np.percentile(norm, 99), 1e-9)
+    q = ax.quiver(uv[:, 0], uv[:, 1], res[:, 0] * scale, res[:, 1] * scale, norm,
+                  angles="xy", scale_units="xy", scale=1, cmap="viridis", width=0.003)
+    fig.colorbar(q, ax=ax, shrink=0.8, label="residual (px)")
+    ax.set_xlim(0, cam.width - 1)
+    ax.set_ylim(cam.height - 1, 0)
+    ax.set_aspect("equal")
+    ax.set_xlabel("u (px)")
+    ax.set_ylabel("v (px)")
+    ax.set_title(f"residuals x {scale:.0f}: detected - reprojected", fontsize=8)
+
+    ax = axes[1, 0]
+    cov = diag["coverage"]
+    counts = np.array(cov["counts"], dtype=float)
+    im = ax.imshow(np.where(counts > 0, counts, np.nan), extent=(0, cam.width, cam.height, 0),
+                   cmap=plt.get_cmap("Blues").with_extremes(bad="0.85"))
+    fig.colorbar(im, ax=ax, shrink=0.8, label="features per cell")
+    ax.set_xlabel("u (px)")
+    ax.set_ylabel("v (px)")
+    ax.set_title(f"coverage: {cov['cell_fraction']:.0%} of cells (grey: none), hull "
+                 f"{cov['hull_fraction']:.0%} of the image", fontsize=8)
+
+    ax = axes[1, 1]
+    proj_unc = entry.get("uncertainty", {}).get("projection")
+    if proj_unc:
+        m = np.array([[np.nan if x is None else x for x in row] for row in proj_unc["map_px"]])
+        u, v = proj_unc["u"], proj_unc["v"]
+        im = ax.imshow(m, extent=(u[0], u[-1], v[-1], v[0]),
+                       norm=matplotlib.colors.LogNorm(vmin=np.nanmin(m), vmax=np.nanmax(m)),
+                       cmap=plt.get_cmap("magma").with_extremes(bad="0.6"))
+        fig.colorbar(im, ax=ax, shrink=0.8, label="1σ (px), log scale")
+        ax.plot(uv[:, 0], uv[:, 1], ",", color="w", alpha=0.3)
+        ax.set_title(f"projection uncertainty at {proj_unc['distance_mm']:.0f} mm (dots: "
+                     f"features)", fontsize=8)
+    else:
+        ax.set_title("no projection uncertainty for this method's model", fontsize=8)
+    ax.set_xlabel("u (px)")
+    ax.set_ylabel("v (px)")
+    fig.suptitle(f"{cam.name}: {primary_method(results, cam.name)}", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_capture(results: dict, estimates: dict, frame_names: list[str], folder: Path
+                 ) -> list[Path]:
+    """``capture_<camera>.png`` for every camera some method calibrated."""
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for c in results["cameras"]:
+        m = primary_method(results, c["name"])
+        if m is not None:
+            paths.append(plot_capture_camera(results, estimates[m, c["name"]], frame_names,
+                                             folder / f"capture_{c['name']}.png"))
+    return paths
 
 
 def _spans_decades(values) -> bool:

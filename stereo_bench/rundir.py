@@ -11,6 +11,14 @@ Layout (the one place it is spelled out; docs/run_directory.md describes it for 
     RUN/trials/seed_<s>/metrics.json
     RUN/trials/seed_<s>/rig/<method>.json
 
+A real capture's folder (``CapturePaths``, written by ``stereo-bench calibrate-images``) is one
+trial's layout at its top, beside the run's files::
+
+    OUT/.lock, OUT/results.json, OUT/report.md, OUT/plots/*.png
+    OUT/frames.json                            the images of each frame, per camera
+    OUT/detections/..., OUT/calibrations/..., OUT/rig/<method>.json   (as a trial's)
+    OUT/export/<format>/<method>/...           exchange files (stereo-bench export)
+
 Every stage ends by writing one JSON marker (manifest.json, detections/done.json, metrics.json,
 rig/<method>.json) that carries the fingerprint of exactly what the stage depends on. A stage is
 reused only when its marker is readable and its fingerprint matches; a missing, torn or stale
@@ -333,6 +341,39 @@ class RunPaths:
     @property
     def lock_file(self) -> Path:
         return self.root / ".lock"
+
+
+@dataclass(frozen=True)
+class CapturePaths:
+    """The files of a real capture's calibration (module notes)."""
+
+    root: Path
+
+    def __post_init__(self):
+        object.__setattr__(self, "root", Path(self.root))
+
+    @property
+    def trial(self) -> TrialPaths:
+        return TrialPaths(self.root)
+
+    @property
+    def frames(self) -> Path:
+        return self.root / "frames.json"
+
+    @property
+    def results(self) -> Path:
+        return RunPaths(self.root).results
+
+    @property
+    def report(self) -> Path:
+        return RunPaths(self.root).report
+
+    @property
+    def plots(self) -> Path:
+        return RunPaths(self.root).plots
+
+    def export(self, fmt: str, method: str) -> Path:
+        return self.root / "export" / fmt / method
 
 
 def prepare_output(out, what: str = "--out") -> Path:

@@ -11,6 +11,7 @@ from stereo_bench.camera import (
     project_with_jacobians,
     rodrigues_to_matrix,
 )
+from stereo_bench.io import opencv_yaml
 
 RECTILINEAR = Camera("rect", 4096, 3072, 3000, 3000, 2048, 1536, 0,
                      np.array([0.05, 0.02, 0.001, 0, 0, 0, 0, 0]))
@@ -137,9 +138,9 @@ def test_json_and_opencv_yaml_roundtrip(tmp_path):
     cam = RECTILINEAR.with_params(rvec=np.array([0.1, -0.2, 0.3]), tvec=np.array([1, 2, 3.0]),
                                   skew=0.5)
     cam.save_json(tmp_path / "c.json")
-    cam.save_opencv_yaml(tmp_path / "c.yaml")
+    opencv_yaml.write_camera(cam, tmp_path / "c.yaml")
     for back in (Camera.load_json(tmp_path / "c.json"),
-                 Camera.load_opencv_yaml(tmp_path / "c.yaml")):
+                 opencv_yaml.read_camera(tmp_path / "c.yaml")):
         assert back.name == cam.name and back.size == cam.size
         assert np.array_equal(back.K, cam.K) and np.array_equal(back.dist, cam.dist)
         assert np.array_equal(back.rvec, cam.rvec) and np.array_equal(back.tvec, cam.tvec)

@@ -196,6 +196,31 @@ def intrinsic_information(model: ProjectionModel, params, free, object_points, r
     return _schur(U, V, W)[0]
 
 
+def linearize(model: ProjectionModel, params, free, object_points, image_points, rvecs, tvecs,
+              rcond: float = 1e-10) -> dict:
+    """The problem of :func:`refine` linearized at given parameters (usually a solution), for
+    what follows a fit: covariances, leverages, uncertainty propagation.
+
+    ``residuals`` (N, 2) projected - observed, views concatenated; ``J_params`` (N, 2, F) over
+    the free intrinsics; ``J_pose`` (N, 2, 6) over each point's own view's [rvec, tvec];
+    ``bounds`` each view's (start, end) among the N points; the normal-equation blocks ``V``
+    (V, 6, 6) and ``W`` (V, F, 6); ``S`` (F, F) their Schur complement (the intrinsic
+    information with the poses marginalized) and ``S_inv`` its inverse as refine's param_std
+    takes it: a pseudo-inverse after scaling to unit diagonal, so null-space directions (see
+    :func:`rank_info`) get no variance instead of an overflow.
+    """
+    problem = _Problem(model, free, object_points, image_points)
+    r, Ja, Jb = problem.residuals(np.asarray(params, float), np.asarray(rvecs, float),
+                                  np.asarray(tvecs, float), jacobians=True)
+    U, V, W, _, _ = problem.normal_equations(r, Ja, Jb)
+    S = _schur(U, V, W)[0]
+    d = np.sqrt(np.maximum(np.diag(S), 1e-300))
+    S_inv = (np.linalg.pinv(S / np.outer(d, d), rcond=rcond, hermitian=True) / np.outer(d, d)
+             if len(S) else S)
+    return {"residuals": r, "J_params": Ja, "J_pose": Jb, "bounds": problem.bounds, "V": V,
+            "W": W, "S": S, "S_inv": S_inv}
+
+
 def refine(model: ProjectionModel, params0, free, object_points, image_points, rvecs0, tvecs0,
            max_iter: int = 100, xtol: float = 1e-15, ftol: float = 1e-15,
            rcond: float = 1e-10) -> RefineResult:

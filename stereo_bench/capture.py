@@ -1,0 +1,181 @@
+"""`stereo-bench calibrate-images`: calibrate a user's own capture with every method, and report
+what can be known without ground truth.
+
+The capture (``image_folders.ImageFolders``) goes through the stages a rendered dataset goes
+through (evaluate.load_or_detect, evaluate.calibrate_cameras, pipeline.rig_of and rig_summary);
+in place of the scoring against the truth, each estimate gets:
+
+* its fit: RPE per camera and per view, with outlier views and points flagged, and a test that
+  the residuals are noise (diagnostics.py);
+* held-out error: k-fold cross-validation over views (diagnostics.heldout);
+* its uncertainty: the parameters' standard deviations and mrcal's projection uncertainty over
+  the image (uncertainty.py), for the methods whose model is OpenCV's;
+* where it can be used: the share of the image with a unique ray (an overfitted model folds);
+* agreement between methods: the projection difference between each pair of estimates;
+* the image's coverage by the detected features;
+* for two or more cameras, the rig: RPE per camera, baselines and rotations, the triangulated
+  board's shape and scale against its known layout, and beside it OpenCV's multi-camera
+  calibration (calibrateMultiview, intrinsics fixed) on the same detections and intrinsics.
+
+Layout of the output folder (``rundir.CapturePaths``): the trial layout of a run (detections/,
+calibrations/<method>/<camera>.json | .yaml | _views.npz, rig/<method>.json) plus frames.json
+(the pairing of the files), results.json, report.md and plots/.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+
+import numpy as np
+
+from .calibrate import get_calibrator
+from .camera import matrix_to_rodrigues
+from .config import CalibrationConfig
+from .diagnostics import diagnose, heldout
+from .evaluate import Estimate, calibrate_cameras, clear_calibrations, load_or_detect
+from .image_folders import ImageFolders
+from .metrics import projection_difference
+from .multiview_ref import opencv_multiview
+from .pipeline import rig_of, rig_summary
+from .plots import plot_capture
+from .rundir import CapturePaths, Notes, strict, write_json
+from .uncertainty import parameter_covariance, projection_uncertainty
+
+DEFAULT_FOLDS = 5
+
+
+def _estimate_report(method: str, est: Estimate, folds: int, seed: int) -> dict:
+    """The truth-free checks of one camera's estimate by one method (module notes)."""
+    result, obs = est.result, est.obs
+    params = get_calibrator(method).model_parameters
+    report = {"diagnostics": diagnose(result.camera, obs, result.rvecs, result.tvecs, params,
+                                      seed=seed)}
+    try:
+        report["heldout"] = heldout(method, obs, k=folds, seed=seed)
+    except ValueError as e:
+        report["heldout"] = {"error": str(e)}
+    if params is None:
+        report["uncertainty"] = {"error": f"{method}'s model is not OpenCV's: no covariance of "
+                                          f"its parameters is propagated"}
+        return report
+    try:
+        report["uncertainty"] = {
+            "parameters": parameter_covariance(result.camera, obs, result.rvecs, result.tvecs,
+                                               params),
+            "projection": projection_uncertainty(result.camera, obs, result.rvecs,
+                                                 result.tvecs, params)}
+    except (ValueError, np.linalg.LinAlgError) as e:
+        report["uncertainty"] = {"error": f"{type(e).__name__}: {e}"}
+    return report
+
+
+def agreement(estimates: dict[str, Estimate]) -> list[dict]:
+    """One camera's estimates by each pair of methods: the projection difference between them
+    (metrics.projection_difference, as is and after the best rotation). The rays come from the
+    second of the pair; where its model has no unique ray everywhere the first is tried."""
+    rows = []
+    for a, b in itertools.combinations(sorted(estimates), 2):
+        ca, cb = estimates[a].result.camera, estimates[b].result.camera
+        row = {"methods": [a, b]}
+        for first, second in ((ca, cb), (cb, ca)):
+            try:
+                row.update(projection_difference(first, second))
+                break
+            except ValueError as e:  # the second one folds inside the image
+                row["error"] = str(e)
+        else:
+            rows.append(row)
+            continue
+        row.pop("error", None)
+        rows.append(row)
+    return rows
+
+
+def _opencv_rig(rig, image_points, source) -> dict:
+    """OpenCV's calibrateMultiview on the same detections with the same intrinsics fixed: the
+    peer of the project's rig adjustment (full views only, multiview_ref's notes)."""
+    seen = np.isfinite(image_points).all(-1).any(-1)
+    try:
+        ref = opencv_multiview(rig.cameras, source.object_points, image_points, seen)
+    except (ValueError, np.linalg.LinAlgError, ImportError) as e:
+        return {"error": f"{type(e).__name__}: {e}"}
+    out = {"opencv_version": ref.log.get("opencv_version"), "rms_px": ref.rms_px,
+           "frames_used": int(ref.frames_used.sum()), "cameras": {}}
+    for ours, theirs in zip(rig.cameras[1:], ref.cameras[1:]):
+        d_rot = np.degrees(np.linalg.norm(matrix_to_rodrigues(theirs.R @ ours.R.T)))
+        out["cameras"][ours.name] = {
+            "baseline_mm": float(np.linalg.norm(theirs.center)),
+            "rotation_deg": float(np.degrees(np.linalg.norm(theirs.rvec))),
+            "difference_rotation_deg": float(d_rot),
+            "difference_centre_mm": float(np.linalg.norm(theirs.center - ours.center))}
+    return out
+
+
+def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration:
+                      CalibrationConfig = CalibrationConfig(), folds: int = DEFAULT_FOLDS,
+                      seed: int = 0, progress=None) -> dict:
+    """Every stage on a real capture, written under ``out`` (module notes); returns the dict
+    written to results.json. A camera or method that fails is recorded with its reason and the
+    others go on; the detections are reused only for the same images and board."""
+    for m in methods:
+        get_calibrator(m)
+    paths = CapturePaths(out)
+    trial = paths.trial
+    notes = Notes()
+    write_json(paths.frames, source.index())
+    dets, detect_s, det_fp = load_or_detect(source, trial, progress, notes)
+    clear_calibrations(trial)
+    t0 = time.perf_counter()
+    entries, estimates, left_out = calibrate_cameras(source, dets, methods, trial, calibration)
+    calibrate_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for m in methods:
+        for cam in source.cameras:
+            if (m, cam.name) in estimates:
+                entries[m][cam.name].update(
+                    _estimate_report(m, estimates[m, cam.name], folds, seed))
+    results = {
+        "kind": "capture",
+        "pattern": {"kind": source.pattern.kind, **{
+            k: v for k, v in vars(source.pattern).items() if k != "margin_mm"}},
+        "cameras": [{"name": c.name, "width": c.width, "height": c.height}
+                    for c in source.cameras],
+        "frames": source.frames,
+        "methods": methods,
+        "detection": {c.name: {"frames": source.frames, "found": int(d.found.sum()),
+                               "errors": {source.frame_name(f): e for f, e in d.errors.items()},
+                               "views_left_out": left_out[c.name]}
+                      for c, d in zip(source.cameras, dets)},
+        "calibration": entries,
+        "agreement": {c.name: agreement({m: estimates[m, c.name] for m in methods
+                                          if (m, c.name) in estimates})
+                      for c in source.cameras},
+        "rig": {},
+        "warnings": source.warnings,
+        "detections_fingerprint": det_fp,
+    }
+    diagnostics_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    if len(source.cameras) >= 2:
+        for m in methods:
+            failed = [e["error"] for e in entries[m].values() if "error" in e]
+            try:
+                if failed:
+                    raise ValueError(f"a camera's calibration failed: {failed[0]}")
+                rig, image_points = rig_of(source, trial, m, calibration)
+                entry, _ = rig_summary(rig, image_points, source.object_points, m, calibration)
+                entry["opencv_multiview"] = _opencv_rig(rig, image_points, source)
+            except (ValueError, np.linalg.LinAlgError, RuntimeError) as e:
+                entry = {"method": m, "error": f"{type(e).__name__}: {e}"}
+            write_json(trial.rig(m), entry)
+            results["rig"][m] = strict(entry)
+    results["timing"] = {"detect_s": detect_s, "calibrate_s": calibrate_s,
+                         "diagnostics_s": diagnostics_s, "rig_s": time.perf_counter() - t0}
+    results["notes"] = notes.items
+    write_json(paths.results, results)
+    results = strict(results)
+    results["plots"] = [str(p.relative_to(paths.root)) for p in plot_capture(
+        results, estimates, [source.frame_name(f) for f in range(source.frames)], paths.plots)]
+    write_json(paths.results, results)
+    return results

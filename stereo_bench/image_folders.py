@@ -1,0 +1,170 @@
+"""A real capture: a user's image folders behind the read interface of a rendered dataset.
+
+Detection and calibration (evaluate.py, pipeline.py) read a source's ``cameras`` (each with a
+``name`` and an image ``size``), ``frames``, ``image(camera, frame)``, ``pattern``,
+``object_points``, ``closeup_of`` and ``fingerprint``; a ``Dataset`` adds the ground truth, an
+``ImageFolders`` has none. So a real capture runs every stage but the scoring.
+
+Files. Each camera is a folder (or a glob such as ``data/left*.jpg``) of JPEG, PNG or TIFF images.
+Frames are paired across cameras by the number in the file name: the last run of digits of the
+stem (``left07.jpg``, ``cam2/0007.png`` and ``right_7.tif`` are all frame 7); a name without a
+digit pairs by its whole stem. A frame one camera lacks is a frame that camera did not see.
+"""
+
+from __future__ import annotations
+
+import glob
+import hashlib
+import re
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .patterns import Pattern
+from .rundir import is_safe_name
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
+_LAST_NUMBER = re.compile(r"(\d+)(?!.*\d)")
+
+
+@dataclass(frozen=True)
+class ImageCamera:
+    """A camera of a real capture: its name and image size, nothing else is known."""
+
+    name: str
+    width: int
+    height: int
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return (self.width, self.height)
+
+
+def frame_key(path: Path) -> tuple[int, int | str]:
+    """What pairs an image with the other cameras' images of the same moment (module notes);
+    numbered frames sort by number, before named ones."""
+    m = _LAST_NUMBER.search(path.stem)
+    return (0, int(m.group(1))) if m else (1, path.stem)
+
+
+def _images_of(name: str, where: str) -> list[Path]:
+    path = Path(where)
+    if path.is_dir():
+        files = [p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES]
+        what = f"folder {where}"
+    else:
+        files = [Path(p) for p in glob.glob(where) if Path(p).suffix.lower() in IMAGE_SUFFIXES]
+        what = f"pattern {where!r}" if glob.has_magic(where) else f"{where}"
+    if not files:
+        raise FileNotFoundError(f"camera {name!r}: no JPEG, PNG or TIFF image in {what}")
+    keys: dict = {}
+    for p in sorted(files):
+        k = frame_key(p)
+        if k in keys:
+            raise ValueError(f"camera {name!r}: {keys[k].name} and {p.name} are both frame "
+                             f"{k[1]}; expected one image per frame (frames pair by the last "
+                             f"number in the file name)")
+        keys[k] = p
+    return [keys[k] for k in sorted(keys)]
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"{path}: not an image OpenCV can read")
+    return img.shape[1], img.shape[0]
+
+
+@dataclass(frozen=True, eq=False)
+class ImageFolders:
+    """The images of every camera of a real capture, paired by frame (module notes).
+
+    files[c][f]: camera c's image of frame f, or None; keys[f]: frame f's pairing key.
+    """
+
+    cameras: list[ImageCamera]
+    files: list[list[Path | None]]
+    keys: list[tuple[int, int | str]]
+    pattern: Pattern
+
+    @classmethod
+    def open(cls, cameras: dict[str, str], pattern: Pattern) -> "ImageFolders":
+        """``cameras``: name -> folder or glob. Raises ValueError or FileNotFoundError naming the
+        camera and the file when a folder is empty, a name is unusable or images differ in
+        size within a camera."""
+        if not cameras:
+            raise ValueError("cameras: expected at least one camera folder")
+        per_camera = {}
+        for name, where in cameras.items():
+            if not is_safe_name(name):
+                raise ValueError(f"camera name {name!r}: expected letters, digits, '_', '-' or "
+                                 f"'.' (it names files of the output)")
+            per_camera[name] = {frame_key(p): p for p in _images_of(name, where)}
+        keys = sorted(set().union(*per_camera.values()))
+        files = [[images.get(k) for k in keys] for images in per_camera.values()]
+        cams = [ImageCamera(name, *_image_size(next(p for p in row if p is not None)))
+                for name, row in zip(per_camera, files)]
+        return cls(cams, files, keys, pattern)
+
+    @property
+    def frames(self) -> int:
+        return len(self.keys)
+
+    @property
+    def object_points(self) -> np.ndarray:
+        return self.pattern.object_points()
+
+    @property
+    def closeup_of(self) -> np.ndarray:
+        """(F,) -1: a real capture has no close-ups marked (``intrinsics_views: all``)."""
+        return np.full(self.frames, -1)
+
+    @property
+    def warnings(self) -> list[str]:
+        alone = [self.frame_name(f) for f in range(self.frames)
+                 if sum(row[f] is not None for row in self.files) == 1]
+        if len(self.cameras) > 1 and alone:
+            return [f"{len(alone)} frame(s) have an image from one camera only (e.g. "
+                    f"{alone[0]}): they serve that camera's intrinsics, not the rig"]
+        return []
+
+    def frame_name(self, frame: int) -> str:
+        kind, key = self.keys[frame]
+        return f"frame {key}" if kind == 0 else str(key)
+
+    def image(self, camera: int, frame: int) -> np.ndarray:
+        """8-bit grey image of ``camera`` at ``frame``; FileNotFoundError when the camera has no
+        image of that frame, ValueError when it cannot be read or differs in size (both are
+        recorded by the detection as a frame not found)."""
+        cam, path = self.cameras[camera], self.files[camera][frame]
+        if path is None:
+            raise FileNotFoundError(f"camera {cam.name!r} has no image of {self.frame_name(frame)}")
+        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise ValueError(f"{path}: not an image OpenCV can read")
+        if (img.shape[1], img.shape[0]) != cam.size:
+            raise ValueError(f"{path}: {img.shape[1]}x{img.shape[0]} px, expected {cam.width}x"
+                             f"{cam.height} like camera {cam.name!r}'s other images")
+        return img
+
+    @cached_property
+    def fingerprint(self) -> str:
+        """Of the images' bytes, their pairing and the board: detections are reused only for
+        exactly these images of exactly this board."""
+        h = hashlib.sha256(repr(self.pattern).encode())
+        for cam, row in zip(self.cameras, self.files):
+            h.update(cam.name.encode())
+            for path in row:
+                h.update(b"-" if path is None else hashlib.sha256(path.read_bytes()).digest())
+        return h.hexdigest()[:16]
+
+    def index(self) -> dict:
+        """The pairing, for the run's records: per frame its key and each camera's file."""
+        return {"cameras": [c.name for c in self.cameras],
+                "frames": [{"frame": self.frame_name(f),
+                            "files": {c.name: None if row[f] is None else str(row[f])
+                                      for c, row in zip(self.cameras, self.files)}}
+                           for f in range(self.frames)]}

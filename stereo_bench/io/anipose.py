@@ -1,0 +1,119 @@
+"""anipose's ``calibration.toml``, the file aniposelib's CameraGroup.dump writes and
+CameraGroup.load reads.
+
+One table per camera, ``[cam_<i>]``, with ``name``, ``size = [w, h]``, ``matrix`` (3x3),
+``distortions`` (OpenCV's order: 5 coefficients k1, k2, p1, p2, k3 when k4..k6 are zero, else
+8), ``rotation`` (Rodrigues) and ``translation``: cam_from_world, ``p_cam = R p_world + t``; and
+a ``[metadata]`` table. aniposelib's lengths are those of its board (``square_length`` in the
+anipose config); this module writes millimetres, the suite's unit, and says so in
+``metadata.length_unit``. Reading converts a file whose ``length_unit`` is "m" or "cm" and takes
+one without it to be in millimetres.
+
+Subset: zero skew (aniposelib projects through cv2.projectPoints, which ignores K[0][1]:
+refused) and the pinhole model (a ``fisheye = true`` camera, aniposelib's cv2.fisheye one, is
+refused when read). Pixel convention: OpenCV's, as aniposelib is OpenCV's. aniposelib's load
+orders the tables by sorting their names as strings, so with more than ten cameras the indices
+are zero-padded (cam_00, cam_01, ...) to keep the rig's order; reading sorts them by number.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib
+
+from ..camera import Camera
+from ..rundir import write_text
+from . import common
+
+FORMAT = "anipose calibration.toml"
+FILE = "calibration.toml"
+LENGTH_UNIT = "mm"
+MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": common.MM_PER_M}
+_TABLE = re.compile(r"cam_(\d+)")
+
+
+def _toml(value) -> str:
+    """A TOML value for a string, an int, a float or nested lists of them (floats as Python's
+    shortest round-trip repr, which TOML accepts)."""
+    if isinstance(value, str):
+        return json.dumps(value)  # a JSON string is a TOML basic string
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml(v) for v in value) + "]"
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    return repr(float(value))
+
+
+def write(cameras: Sequence[Camera], out_dir) -> list[Path]:
+    """Write ``calibration.toml`` in ``out_dir`` (module notes)."""
+    cameras = common.rig(cameras, FORMAT)
+    for cam in cameras:
+        common.refuse_skew(cam, "aniposelib (cv2.projectPoints ignores it)")
+    width = len(str(len(cameras) - 1))
+    lines = []
+    for i, cam in enumerate(cameras):
+        dist = cam.dist if np.any(cam.dist[5:]) else cam.dist[:5]
+        lines += [f"[cam_{i:0{width}d}]"] + [f"{k} = {_toml(v)}" for k, v in (
+            ("name", cam.name), ("size", [cam.width, cam.height]), ("matrix", cam.K.tolist()),
+            ("distortions", dist.tolist()), ("rotation", cam.rvec.tolist()),
+            ("translation", cam.tvec.tolist()))] + [""]
+    lines += ["[metadata]", f"length_unit = {_toml(LENGTH_UNIT)}", ""]
+    return [write_text(Path(out_dir) / FILE, "\n".join(lines))]
+
+
+def _camera(table, key: str, where: str, mm_per_unit: float) -> Camera:
+    at = f"{where}: [{key}]"
+    if not isinstance(table, dict):
+        raise ValueError(f"{at}: expected a table")
+    if table.get("fisheye", False):
+        raise ValueError(f"{at}: a fisheye camera (cv2.fisheye's model), which the camera core "
+                         f"does not hold")
+    try:
+        K = common.numbers(table["matrix"], (3, 3), f"{at}: matrix")
+        dist = np.asarray(table["distortions"], dtype=np.float64).reshape(-1)
+        w, h = common.numbers(table["size"], (2,), f"{at}: size [w, h]")
+        rvec = common.numbers(table["rotation"], (3,), f"{at}: rotation")
+        tvec = common.numbers(table["translation"], (3,), f"{at}: translation")
+        name = str(table.get("name", key))
+    except KeyError as e:
+        raise ValueError(f"{at}: missing {e.args[0]!r}") from None
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{at}: {e}") from None
+    if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+        raise ValueError(f"{at}: matrix must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got "
+                         f"{K.tolist()}")
+    if dist.size > 8:
+        raise ValueError(f"{at}: distortions has {dist.size} coefficients; the camera core holds "
+                         f"at most 8 [k1, k2, p1, p2, k3, k4, k5, k6]")
+    try:
+        return Camera.from_K(name, int(w), int(h), K, dist, rvec, tvec * mm_per_unit)
+    except ValueError as e:
+        raise ValueError(f"{at}: {e}") from None
+
+
+def read(path) -> list[Camera]:
+    """The rig of a calibration.toml, in the order of its tables' numbers."""
+    path = common.existing(path, "anipose calibration file")
+    try:
+        doc = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"{path}: not TOML ({e})") from None
+    tables = sorted(((int(m.group(1)), k) for k in doc if (m := _TABLE.fullmatch(k))))
+    if not tables:
+        raise ValueError(f"{path}: no [cam_<i>] tables")
+    meta = doc.get("metadata", {})
+    unit = meta.get("length_unit", LENGTH_UNIT) if isinstance(meta, dict) else LENGTH_UNIT
+    if unit not in MM_PER_UNIT:
+        raise ValueError(f"{path}: metadata.length_unit is {unit!r}, expected one of "
+                         f"{', '.join(MM_PER_UNIT)}")
+    return common.rig([_camera(doc[k], k, str(path), MM_PER_UNIT[unit]) for _, k in tables],
+                      str(path))

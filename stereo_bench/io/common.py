@@ -1,0 +1,114 @@
+"""What every exchange format shares: the checks on a rig before it is written and on numbers
+read back, the refusals of what a format cannot hold, and the unit of length.
+
+A rig is a ``list[Camera]`` whose poses are cam_from_world in millimetres (camera 0 usually the
+reference, at the identity); a single camera is a list of one. Formats that store the rig
+relative to its first camera (OpenCV's stereo and multi-camera files, Kalibr) have no world
+frame: :func:`cam_from_cam0` refuses a rig whose camera 0 is not at the identity unless the
+caller asks for the rebase, so that a pose is never dropped silently.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from ..camera import DIST_NAMES, Camera, nearest_rotation
+from ..stereo import cam_from_cam0 as _cam_from_cam0
+
+MM_PER_M = 1000.0
+
+#: A rotation read from a file must be orthonormal to this (Kalibr writes 8 digits, COLMAP
+#: normalizes quaternions itself); it is then projected onto SO(3) exactly.
+ROTATION_TOLERANCE = 1e-6
+
+
+def rig(cameras: Sequence[Camera], fmt: str, min_count: int = 1) -> list[Camera]:
+    """The cameras as a list, refused (ValueError naming the entry) unless they are at least
+    ``min_count`` stereo_bench Cameras with distinct names."""
+    if isinstance(cameras, Camera):
+        cameras = [cameras]
+    cameras = list(cameras)
+    if len(cameras) < min_count:
+        raise ValueError(f"{fmt}: expected at least {min_count} camera(s), got {len(cameras)}")
+    for c, cam in enumerate(cameras):
+        if not isinstance(cam, Camera):
+            raise ValueError(f"{fmt}: cameras[{c}] is a {type(cam).__name__}, expected a "
+                             f"stereo_bench Camera")
+    names = [cam.name for cam in cameras]
+    duplicated = sorted({n for n in names if names.count(n) > 1})
+    if duplicated:
+        raise ValueError(f"{fmt}: camera names must be distinct, {duplicated} repeat")
+    return cameras
+
+
+def refuse_skew(camera: Camera, fmt: str) -> None:
+    if camera.skew != 0:
+        raise ValueError(f"camera {camera.name!r}: skew {camera.skew!r} is not 0; {fmt} has no "
+                         f"skew")
+
+
+def refuse_distortion(camera: Camera, fmt: str, kept: int) -> None:
+    """Refuse a camera with a nonzero coefficient past the first ``kept`` of
+    [k1, k2, p1, p2, k3, k4, k5, k6] (naming the first one)."""
+    extra = np.flatnonzero(camera.dist[kept:])
+    if extra.size:
+        i = kept + int(extra[0])
+        raise ValueError(f"camera {camera.name!r}: {DIST_NAMES[i]} = {camera.dist[i]!r} is not "
+                         f"0; {fmt} holds only {', '.join(DIST_NAMES[:kept])}")
+
+
+def refuse_name(camera: Camera, fmt: str, allowed: str, pattern) -> None:
+    """Refuse a name the format cannot carry (``pattern`` a compiled regex, ``allowed`` says
+    what it accepts)."""
+    if not pattern.fullmatch(camera.name):
+        raise ValueError(f"camera {camera.name!r}: {fmt} needs names of {allowed}")
+
+
+def cam_from_cam0(cameras: Sequence[Camera], fmt: str, rebase: bool) -> tuple[np.ndarray,
+                                                                               np.ndarray]:
+    """Each camera's pose relative to the first (R (C,3,3), t (C,3) in mm) for a format with no
+    world frame. Without ``rebase`` a camera 0 that is not at the identity is refused: writing
+    the rig relative to it would drop the world frame."""
+    if not rebase and (np.any(cameras[0].rvec) or np.any(cameras[0].tvec)):
+        raise ValueError(
+            f"camera {cameras[0].name!r}: cam_from_world is not the identity, but {fmt} stores "
+            f"the rig relative to its first camera and has no world frame; pass rebase=True to "
+            f"write it relative to camera {cameras[0].name!r} (the world frame is then lost)")
+    return _cam_from_cam0(cameras)
+
+
+def rotation(value, where: str) -> np.ndarray:
+    """A rotation matrix read from a file: (3, 3), finite, orthonormal to ROTATION_TOLERANCE and
+    proper, returned projected onto SO(3)."""
+    R = numbers(value, (3, 3), where)
+    if (np.abs(R @ R.T - np.eye(3)).max() > ROTATION_TOLERANCE
+            or np.linalg.det(R) < 0):
+        raise ValueError(f"{where}: expected a rotation matrix, got {R.tolist()} (R R^T != I "
+                         f"or det < 0)")
+    return nearest_rotation(R)
+
+
+def numbers(value, shape: tuple, where: str) -> np.ndarray:
+    """Finite float64 numbers of ``shape`` read from a file, or a ValueError naming ``where``."""
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: expected numbers of shape {shape}, got {value!r}") from None
+    if len(shape) == 1 and a.size == shape[0] and max(a.shape, default=0) == a.size:
+        a = a.reshape(shape)  # a vector stored as a row or a column (OpenCV's matrices)
+    if a.shape != shape:
+        raise ValueError(f"{where}: expected shape {shape}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{where}: expected finite numbers, got {a.tolist()}")
+    return a
+
+
+def existing(path, what: str, folder: bool = False) -> Path:
+    """``path`` as a Path, refused unless it is an existing file (or folder)."""
+    path = Path(path)
+    if not (path.is_dir() if folder else path.is_file()):
+        raise ValueError(f"{path}: no such {what}")
+    return path
