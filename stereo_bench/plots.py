@@ -289,9 +289,11 @@ def plot_capture_camera(results: dict, est, frame_names: list[str], path: Path) 
     ax.set_xticks(range(len(views["view_ids"])),
                   [frame_names[v].replace("frame ", "") for v in views["view_ids"]],
                   fontsize=6, rotation=90)
-    if views["threshold_px"] is not None:
-        ax.axhline(views["threshold_px"], color="tab:red", lw=0.8, ls="--",
-                   label=f"flag above {views['threshold_px']:.3f} px")
+    # Each view's own threshold (a view of few points is noisier, so it may fit worse).
+    limit = np.array([np.nan if x is None else x for x in views["threshold_px"]], dtype=float)
+    if np.isfinite(limit).any():
+        ax.scatter(range(len(limit)), limit, marker="_", s=120, color="tab:red",
+                   label="flagged above")
         ax.legend(fontsize=7)
     ax.set_xlabel("frame")
     ax.set_ylabel("RPE of the view (px)")

@@ -1,0 +1,143 @@
+"""A user's own images (`stereo-bench calibrate-images`): the same stages as a rendered dataset,
+frames paired by number, the board as users describe it, and the real OpenCV sample pair."""
+
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from stereo_bench.capture import calibrate_capture
+from stereo_bench.cli import main
+from stereo_bench.config import parse_rig
+from stereo_bench.image_folders import ImageFolders, frame_key
+from stereo_bench.patterns import Checkerboard
+from stereo_bench.pipeline import run
+from stereo_bench.rundir import RunPaths
+
+ROOT = Path(__file__).parent.parent
+REAL = ROOT.parent / "shared" / "real" / "opencv_stereo"
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    """A small clean stereo run and the same images laid out as a user's two folders, named
+    differently per camera (frames pair by their number)."""
+    d = yaml.safe_load((ROOT / "configs" / "quickstart.yaml").read_text())
+    d["trajectory"]["frames"] = 10
+    cfg = parse_rig(d)
+    tmp = tmp_path_factory.mktemp("capture")
+    trial = run(cfg, tmp / "run", ["opencv"])[0]
+    images = RunPaths(tmp / "run").trial(cfg.seed).dataset.root / "images"
+    folders = {}
+    for cam, prefix in (("left", "img_"), ("right", "right-")):
+        folders[cam] = tmp / "user" / cam
+        folders[cam].mkdir(parents=True)
+        for f, png in enumerate(sorted((images / cam).glob("*.png"))):
+            shutil.copy(png, folders[cam] / f"{prefix}{f + 1:04d}.png")
+    return cfg, trial, folders, tmp
+
+
+def test_frames_pair_by_the_last_number_in_the_name():
+    assert frame_key(Path("left07.jpg")) == frame_key(Path("cam2/0007.png")) == (0, 7)
+    assert frame_key(Path("take3_frame_12.tif")) == (0, 12)
+    assert frame_key(Path("board.png")) == (1, "board")
+
+
+def test_capture_runs_the_synthetic_stages_to_the_same_numbers(rendered):
+    """The capture of the rendered images gives the estimate and the rig the synthetic run gave
+    (shared stages), and only the synthetic run has the truth's scores."""
+    cfg, trial, folders, tmp = rendered
+    source = ImageFolders.open({k: str(v) for k, v in folders.items()}, cfg.pattern.build())
+    assert source.frames == 10 and source.warnings == []
+    res = calibrate_capture(source, ["opencv"], tmp / "out", folds=3)
+    for cam in ("left", "right"):
+        ours, theirs = res["calibration"]["opencv"][cam], trial["calibration"]["opencv"][cam]
+        assert ours["rpe_rms_px"] == pytest.approx(theirs["rpe_rms_px"], rel=1e-12)
+        assert "projection_difference" not in ours  # no truth here
+        # Clean renders: held-out error near the in-sample one, a tiny projection uncertainty.
+        assert ours["heldout"]["heldout_rms_px"] < 2 * ours["rpe_rms_px"] + 0.01
+        assert ours["uncertainty"]["projection"]["centre_px"] < 0.05
+    rig, ref = res["rig"]["opencv"], trial["rig"]["opencv"]
+    assert rig["rms_px"] == pytest.approx(ref["rms_px"], rel=1e-9)
+    assert rig["baseline_mm"]["right"] == pytest.approx(120.0, abs=0.5)  # the true baseline
+    assert abs(rig["board_geometry"]["scale_error_pct"]) < 0.1
+    peer = rig["opencv_multiview"]["cameras"]["right"]
+    assert peer["difference_rotation_deg"] < 0.01 and peer["difference_centre_mm"] < 0.1
+    assert (tmp / "out" / "plots" / "capture_left.png").is_file()
+    assert json.loads((tmp / "out" / "results.json").read_text())["kind"] == "capture"
+
+
+def test_missing_frames_and_bad_images_are_recorded(rendered, tmp_path):
+    cfg, _, folders, _ = rendered
+    left = tmp_path / "left"
+    shutil.copytree(folders["left"], left)
+    (left / "img_0003.png").unlink()
+    cv2.imwrite(str(left / "img_0004.png"), np.zeros((10, 10), np.uint8))  # another size
+    source = ImageFolders.open({"left": str(left), "right": str(folders["right"])},
+                               cfg.pattern.build())
+    assert "frame 3" in source.warnings[0]
+    res = calibrate_capture(source, ["opencv"], tmp_path / "out", folds=3)
+    errors = res["detection"]["left"]["errors"]
+    assert "no image of frame 3" in errors["frame 3"]
+    assert "10x10 px, expected 640x480" in errors["frame 4"]
+    assert res["detection"]["left"]["found"] == 8
+    assert "error" not in res["rig"]["opencv"]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--board", "charuco", "--inner-corners", "9x6"], "--inner-corners: not an option of a"),
+    (["--board", "checkerboard", "--inner-corners", "9"], "expected COLUMNSxROWS"),
+    (["--board", "checkerboard", "--inner-corners", "9x1"], "inner_corners"),
+    (["--board", "symmetric_circles", "--circles", "4x4", "--spacing-mm", "10",
+      "--diameter-mm", "12"], "diameter_mm must be below spacing_mm"),
+    (["--inner-corners", "9x6"], "--board: expected the board's kind"),
+])
+def test_bad_board_options_are_named(argv, message, tmp_path, capsys):
+    assert main(["calibrate-images", f"x={tmp_path}", *argv, "--out", str(tmp_path / "o")]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_empty_folder_is_named(tmp_path, capsys):
+    code = main(["calibrate-images", f"cam={tmp_path}", "--board", "checkerboard",
+                 "--inner-corners", "9x6", "--out", str(tmp_path / "o")])
+    assert code == 2 and f"camera 'cam': no JPEG, PNG or TIFF image in folder {tmp_path}" in \
+        capsys.readouterr().err
+
+
+def test_board_file_reads_the_rig_files_pattern_section(tmp_path):
+    from argparse import Namespace
+
+    from stereo_bench.cli import board_from_args
+
+    path = tmp_path / "board.yaml"
+    path.write_text("pattern:\n  kind: checkerboard\n  inner_corners: [9, 6]\n  square_mm: 24.5\n")
+    board = board_from_args(Namespace(board_file=str(path)))
+    assert isinstance(board, Checkerboard) and board.pattern_size == (9, 6)
+    assert board.square_mm == 24.5
+
+
+@pytest.mark.skipif(not REAL.is_dir(), reason=f"{REAL}: OpenCV's sample pair not present")
+def test_real_opencv_pair_through_the_command(tmp_path):
+    """OpenCV's sample stereo pair, square size 1 (lengths in squares, as OpenCV's sample):
+    the rig agrees with OpenCV's calibrateMultiview on the same detections and intrinsics, and
+    the baseline is OpenCV's stereo_calib's 3.345 squares within a few hundredths."""
+    out = tmp_path / "real"
+    code = main(["calibrate-images", f"left={REAL}/left*.jpg", f"right={REAL}/right*.jpg",
+                 "--board", "checkerboard", "--inner-corners", "9x6", "--square-mm", "1",
+                 "--methods", "opencv", "--folds", "3", "--out", str(out)])
+    assert code == 0
+    res = json.loads((out / "results.json").read_text())
+    for cam in ("left", "right"):
+        e = res["calibration"]["opencv"][cam]
+        assert e["views"] == 13
+        # OpenCV's own pipeline reaches 0.408 / 0.458 px (shared/real/README.md).
+        assert e["rpe_rms_px"] < 0.42
+        assert e["heldout"]["heldout_rms_px"] < 1.2 * e["rpe_rms_px"]
+    rig = res["rig"]["opencv"]
+    assert rig["baseline_mm"]["right"] == pytest.approx(3.345, abs=0.05)
+    peer = rig["opencv_multiview"]["cameras"]["right"]
+    assert peer["difference_rotation_deg"] < 0.05 and peer["difference_centre_mm"] < 0.01
