@@ -65,10 +65,17 @@ def build_parser() -> argparse.ArgumentParser:
                     "(MPJPE), with the exact pose known: keypoints seen through the true cameras "
                     "are triangulated through the method's estimated cameras. The gt column "
                     "(true cameras) is always reported beside the chosen method.")
-    p.add_argument("--calib", required=True, type=calib_choice, metavar="METHOD",
+    p.add_argument("--calib", type=calib_choice, metavar="METHOD",
                    help="calibration method whose estimated rig triangulates ("
                         f"{', '.join(available_methods())} or BASE-MODEL, e.g. zhang-brown); "
-                        "'gt' the true cameras only; 'all' every method in the run plus gt")
+                        "'gt' the true cameras only; 'all' every method in the run plus gt "
+                        "(default with --calibration: gt)")
+    p.add_argument("--calibration", metavar="FILE",
+                   help="your own calibration of the rig's cameras, from another tool (a file "
+                        "or folder in a format of docs/formats.md: OpenCV YAML, COLMAP, Kalibr, "
+                        "EasyMocap, anipose, mrcal); reported beside gt as file:<name>")
+    p.add_argument("--calibration-format", metavar="FORMAT",
+                   help="its format (default: guessed from the file names)")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--run", metavar="RUN_DIR",
                      help="a `stereo-bench RIG.yaml --out RUN_DIR` run: true cameras and every "
@@ -116,7 +123,9 @@ def _inputs(args) -> tuple[str, str, list[Trial]]:
 
 
 def _methods(args, trials: list[Trial]) -> list[str]:
-    if args.calib == "gt":
+    if args.calib is None and not args.calibration:
+        raise ValueError("--calib: expected a method, gt or all (or --calibration FILE)")
+    if args.calib in ("gt", None):
         return ["gt"]
     if not args.run:
         raise ValueError(f"--calib {args.calib} needs the method's calibrated rig: run "
@@ -241,6 +250,28 @@ def _run_rigs(methods: list[str], run_trial: Trial) -> dict:
     return rigs
 
 
+def _imported(args, truth) -> dict:
+    """{file:<name>: (the --calibration's cameras as a rig of the true cameras, how they were
+    matched)}, or {} without --calibration."""
+    if not args.calibration:
+        return {}
+    from stereo_bench import io
+    from stereo_bench.exchange import as_rig_of
+
+    cams, how = as_rig_of(io.load(args.calibration, args.calibration_format),
+                          [c.name for c in truth], args.calibration)
+    return {f"file:{Path(args.calibration).name}": (cams, how)}
+
+
+def _placed(cameras, truth):
+    """An imported rig in the true world, or why it cannot be (recorded as that method's
+    failure, as a run's failed calibration is)."""
+    try:
+        return in_true_world(cameras, truth)
+    except ValueError as e:
+        return str(e)
+
+
 def _display(truth, *joints):
     """Joints (24, 3) in the rig's (right, depth, up) axes, for the skeleton plot."""
     centre, axis, up, _ = rig_axes(truth)
@@ -261,6 +292,8 @@ def evaluate(args) -> tuple[dict, dict]:
         raise ValueError(f"{args.run or args.rig}: {len(run_trials[0].truth)} camera; "
                          f"triangulating a pose needs at least two")
     methods = _methods(args, run_trials)
+    imported = _imported(args, run_trials[0].truth)
+    run_methods, methods = methods, methods + list(imported)
     detector = DetectorModel(*(d if v is None else v for v, d in zip(noise, (NOISE_PX, 0.0, 0.0))),
                              occlusion=not args.no_occlusion)
     n_trials = args.trials or len(run_trials)
@@ -297,7 +330,9 @@ def evaluate(args) -> tuple[dict, dict]:
         for k, v in keypoints.counts().items():
             detections[k] = detections.get(k, 0) + v
         under_two_views += keypoints.under_two_views().sum(axis=0)
-        entries, joints = evaluate_trial(truth, _run_rigs(methods, run_trial), keypoints, scene,
+        rigs = {**_run_rigs(run_methods, run_trial),
+                **{m: _placed(cams, truth) for m, (cams, _) in imported.items()}}
+        entries, joints = evaluate_trial(truth, rigs, keypoints, scene,
                                          args.robust, args.fit_smpl, model,
                                          label=f"run trial seed {run_trial.seed}")
         for m in methods:
@@ -312,7 +347,10 @@ def evaluate(args) -> tuple[dict, dict]:
             for m, e in entries.items()))
     first_scene = next(iter(scenes.values()))[0]
     settings = {
-        "calib": args.calib, "motion": args.motion, "frames": args.frames, "trials": n_trials,
+        "calib": args.calib,
+        "calibration": {m: {"file": args.calibration, "cameras": how}
+                        for m, (_, how) in imported.items()},
+        "motion": args.motion, "frames": args.frames, "trials": n_trials,
         "distance_mm": first_scene.distance_mm, "surrounded": first_scene.surrounded,
         "robust": args.robust, "fit_smpl": args.fit_smpl,
         "model_path": args.model_path, "source": args.run or args.rig, "seed": args.seed,

@@ -278,6 +278,39 @@ def cmd_calibrate_images(args) -> int:
     return 0
 
 
+def cmd_export(args) -> int:
+    from .exchange import export_estimates
+    from .rundir import CapturePaths
+
+    out = Path(args.out or CapturePaths(args.source).export(args.format, args.method))
+    with locked(out):
+        written, where = export_estimates(args.source, args.method, args.format, out, args.seed)
+    console.print(f"{args.method}'s estimates of {where} in {args.format} format:",
+                  markup=False, highlight=False)
+    for path in written:
+        console.print(f"  {path}", markup=False, highlight=False)
+    return 0
+
+
+def cmd_score(args) -> int:
+    from .dataset import Dataset
+    from .exchange import score_calibration
+    from .report import imported_markdown
+    from .rundir import RunPaths, write_json, write_text
+
+    ds = Dataset.load(args.dataset)
+    out = Path(args.out or Path(args.dataset) / "scored")
+    with locked(out):
+        report = score_calibration(ds, args.calibration, args.format, out)
+        text = imported_markdown(report)
+        paths = RunPaths(out)
+        write_json(paths.results, report)
+        write_text(paths.report, text)
+    console.print(text, markup=False, soft_wrap=True, highlight=False)
+    console.print(f"wrote {paths.results}, {paths.report}", markup=False, highlight=False)
+    return 0
+
+
 def _trial_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--methods", default="zhang,tsai,bouguet,opencv",
                    help="comma-separated methods (default: %(default)s; also opencv-rational)")
@@ -361,6 +394,34 @@ def build_parser() -> argparse.ArgumentParser:
                    help="let the rig's bundle adjustment refine each camera's intrinsics")
     i.add_argument("--out", help="output directory (default: out/capture)")
     i.set_defaults(func=cmd_calibrate_images)
+
+    from .io import FORMATS
+
+    e = sub.add_parser("export", help="write a run's or a capture's estimates for another tool",
+                       description="Write one method's estimates (the calibrated rig, or each "
+                                   "camera when there is no rig) from a run directory or a "
+                                   "calibrate-images folder in another tool's format "
+                                   "(docs/formats.md).")
+    e.add_argument("source", help="a run directory or a calibrate-images output folder")
+    e.add_argument("--format", required=True, choices=sorted(FORMATS))
+    e.add_argument("--method", default="opencv", help="the method (default: %(default)s)")
+    e.add_argument("--seed", type=int, help="a run's trial seed (default: its first)")
+    e.add_argument("--out", help="output folder (default: SOURCE/export/FORMAT/METHOD)")
+    e.set_defaults(func=cmd_export)
+
+    s = sub.add_parser("score", help="score a calibration made by another tool against a "
+                                     "dataset's truth",
+                       description="Read a calibration (any format of docs/formats.md) of a "
+                                   "rendered dataset's cameras and score it against the truth "
+                                   "as the suite scores its own methods: projection difference "
+                                   "and parameter errors per camera; for a rig, RMSE_cal "
+                                   "through the suite's detections and the rig's errors.")
+    s.add_argument("dataset", help="dataset directory written by `stereo-bench render`")
+    s.add_argument("calibration", help="a calibration file or folder")
+    s.add_argument("--format", choices=sorted(FORMATS),
+                   help="its format (default: guessed from the file names)")
+    s.add_argument("--out", help="output folder (default: DATASET/scored)")
+    s.set_defaults(func=cmd_score)
 
     w = sub.add_parser("sweep", help="run a grid of configurations (e.g. the paper's 40)",
                        description="Cross rig files with axes of rig-file fields (GRID.yaml, "

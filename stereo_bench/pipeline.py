@@ -93,21 +93,21 @@ def rig_of(source, trial: TrialPaths, method: str, calibration: CalibrationConfi
     return rig, image_points
 
 
-def triangulated_board(rig: RigCalibration, image_points: np.ndarray
+def triangulated_board(cameras: list[Camera], image_points: np.ndarray
                        ) -> tuple[np.ndarray, dict[str, int]]:
-    """The board's points triangulated in every frame through the rig, (F, N, 3) mm in the
-    reference camera's frame (NaN where fewer than two cameras saw them), and per camera the
+    """The board's points triangulated in every frame through a rig's cameras (cam_from_cam0),
+    (F, N, 3) mm in the reference camera's frame (NaN where fewer than two cameras saw them), and per camera the
     number of detections it could not use: those where its estimated distortion has no unique
     ray (an overfitted model folds inside the image, TRAPS.md); they are masked, not fatal."""
     pts = image_points.copy()
     dropped = {}
-    for c, cam in enumerate(rig.cameras):
+    for c, cam in enumerate(cameras):
         seen = np.isfinite(pts[c]).all(-1)
         bad = seen.copy()
         bad[seen] = ~cam.invertible(pts[c][seen])
         pts[c][bad] = np.nan
         dropped[cam.name] = int(bad.sum())
-    return triangulate(rig.cameras, pts), dropped
+    return triangulate(cameras, pts), dropped
 
 
 def board_geometry(points: np.ndarray, object_points: np.ndarray) -> dict:
@@ -139,7 +139,7 @@ def rig_summary(rig: RigCalibration, image_points: np.ndarray, object_points: np
                 method: str, calibration: CalibrationConfig) -> tuple[dict, np.ndarray]:
     """What a rig calibration says of itself, without any truth, and its triangulated board
     (``triangulated_board``), which the scoring step compares with the truth."""
-    points, dropped = triangulated_board(rig, image_points)
+    points, dropped = triangulated_board(rig.cameras, image_points)
     entry = {
         "method": method,
         "reference": rig.cameras[0].name,
@@ -164,8 +164,8 @@ def rig_summary(rig: RigCalibration, image_points: np.ndarray, object_points: np
     return entry, points
 
 
-def score_rig(rig: RigCalibration, est_pts: np.ndarray, ds: Dataset) -> dict:
-    """A rig calibration against the truth (the scoring step).
+def score_rig(cameras: list[Camera], est_pts: np.ndarray, ds: Dataset) -> dict:
+    """A rig's cameras (cam_from_cam0) against the truth (the scoring step).
 
     RMSE_cal (paper Sec. 4.2): the board's feature points triangulated in every frame through the
     estimated rig (DLT then reprojection refinement) against their true positions, both in the
@@ -174,7 +174,8 @@ def score_rig(rig: RigCalibration, est_pts: np.ndarray, ds: Dataset) -> dict:
     ``centre_rmse_mm`` does the same for the board's centre (the mean of the points triangulated
     in a frame against the mean of the same points' truth). Per camera: rotation and centre errors
     with the reference camera fixed, and again after a similarity alignment (3+ cameras), beside
-    the reprojection error, so that a low reprojection error cannot hide a wrong geometry.
+    the reprojection error (added by ``rig_calibration``), so that a low reprojection error
+    cannot hide a wrong geometry.
     """
     truth = ds.cameras
     world_pts = ds.rig().board_points_world()  # (F, N, 3)
@@ -191,7 +192,7 @@ def score_rig(rig: RigCalibration, est_pts: np.ndarray, ds: Dataset) -> dict:
         centre = truth[0].world_to_cam(volume_centre(truth))
     except ValueError:  # cameras that look one way: the middle of the board's path
         centre = true_pts.reshape(-1, 3).mean(0)
-    errors = rig_errors(rig.cameras, truth)
+    errors = rig_errors(cameras, truth)
     entry = {
         "rmse_cal_mm": float(np.sqrt(np.mean(err**2))) if len(err) else float("nan"),
         "mean_error_mm": float(err.mean()) if len(err) else float("nan"),
@@ -202,12 +203,11 @@ def score_rig(rig: RigCalibration, est_pts: np.ndarray, ds: Dataset) -> dict:
         "points_triangulated": int(ok.sum()),
         "rig_errors": {k: v[1:] for k, v in errors.items()},  # camera 0 is 0 by construction
         "camera_errors": {c.name: {"rotation_deg": float(errors["rotation_deg"][i]),
-                                   "centre_mm": float(errors["centre_mm"][i]),
-                                   "rms_px": float(rig.rms_px_per_camera[i])}
+                                   "centre_mm": float(errors["centre_mm"][i])}
                           for i, c in enumerate(truth)},
     }
     try:
-        aligned = aligned_rig_errors(rig.cameras, truth)
+        aligned = aligned_rig_errors(cameras, truth)
         entry["aligned"] = {"scale": aligned["scale"], "cameras": {
             c.name: {"rotation_deg": float(aligned["rotation_deg"][i]),
                      "centre_mm": float(aligned["centre_mm"][i])} for i, c in enumerate(truth)}}
@@ -223,7 +223,9 @@ def rig_calibration(ds: Dataset, trial: TrialPaths, method: str,
     shared with real captures) and score it against the truth (``score_rig``)."""
     rig, image_points = rig_of(ds, trial, method, calibration)
     entry, points = rig_summary(rig, image_points, ds.object_points, method, calibration)
-    entry.update(score_rig(rig, points, ds))
+    entry.update(score_rig(rig.cameras, points, ds))
+    for c, rms in zip(ds.cameras, rig.rms_px_per_camera):
+        entry["camera_errors"][c.name]["rms_px"] = float(rms)
     return entry
 
 

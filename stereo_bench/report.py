@@ -423,3 +423,33 @@ def capture_markdown(results: dict, title: str) -> str:
     lines += [f"Detection {t['detect_s']:.1f} s, calibration {t['calibrate_s']:.1f} s, "
               f"diagnostics {t['diagnostics_s']:.1f} s, rig {t['rig_s']:.1f} s.", ""]
     return "\n".join(lines)
+
+
+def imported_markdown(report: dict) -> str:
+    """report.md of a calibration from another tool scored against a dataset's truth
+    (exchange.score_calibration)."""
+    lines = [f"# {report['calibration']} ({report['format']}) against the truth of "
+             f"{report['dataset']}", "", f"Cameras {report['matched']}.", ""]
+    columns = [c for c in CALIBRATION_COLUMNS
+               if c[1][0] in ("projection_difference", "validity", "parameter_errors")]
+    lines += _header("camera", *_titles(columns))
+    for cam, entry in report["cameras"].items():
+        lines.append(f"| {cam} | " + " | ".join(_num(_get(entry, path), 4)
+                                                for _, path in columns) + " |")
+    rig = report.get("rig")
+    if rig:
+        geo = rig["board_geometry"]
+        lines += ["", "## The rig", "",
+                  f"RMSE_cal {_num(rig['rmse_cal_mm'])} mm over {rig['points_triangulated']} "
+                  f"triangulated board points (centre {_num(rig['centre_rmse_mm'])} mm, max "
+                  f"{_num(rig['max_error_mm'])} mm); the triangulated board keeps its shape to "
+                  f"{_num(geo['rmse_mm'])} mm and its size to {_num(geo['scale_error_pct'])} %.",
+                  ""]
+        lines += _header("camera", "rotation err deg", "centre err mm", "aligned rotation err deg",
+                         "aligned centre err mm")
+        aligned = (rig.get("aligned") or {}).get("cameras", {})
+        for cam, e in rig["camera_errors"].items():
+            a = aligned.get(cam, {})
+            lines.append(f"| {cam} | {_num(e['rotation_deg'], 4)} | {_num(e['centre_mm'], 4)} | "
+                         f"{_num(a.get('rotation_deg'), 4)} | {_num(a.get('centre_mm'), 4)} |")
+    return "\n".join(lines + [""])

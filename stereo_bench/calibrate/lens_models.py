@@ -8,6 +8,8 @@ it frees; every other coefficient stays exactly 0:
 
     radial2   k1, k2                       Zhang's model
     radial3   k1, k2, k3
+    radtan    k1, k2, p1, p2               OpenCV's 4 (Kalibr's pinhole-radtan, COLMAP's OPENCV,
+                                           mrcal's LENSMODEL_OPENCV4): exports to every format
     brown     k1, k2, p1, p2, k3           OpenCV's default 5 (Brown-Conrady)
     rational  k1, k2, p1, p2, k3, k4, k5, k6   OpenCV's CALIB_RATIONAL_MODEL 8
 
@@ -20,6 +22,7 @@ from __future__ import annotations
 LENS_MODELS: dict[str, tuple[str, ...]] = {
     "radial2": ("k1", "k2"),
     "radial3": ("k1", "k2", "k3"),
+    "radtan": ("k1", "k2", "p1", "p2"),
     "brown": ("k1", "k2", "p1", "p2", "k3"),
     "rational": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
 }
