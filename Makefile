@@ -4,7 +4,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test venv clean
+.PHONY: demo test venv clean mrcal-env
 
 $(BIN)/stereo-bench: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -12,7 +12,22 @@ $(BIN)/stereo-bench: pyproject.toml
 	# torch first and pinned: the CPU build; an unpinned torch would pull CUDA packages.
 	$(BIN)/python -m pip install --quiet torch==2.13.0
 	$(BIN)/python -m pip install --quiet -e ".[test]"
+	# aniposelib, to read anipose files back in the tests: without its dependencies, since it
+	# asks for opencv-contrib-python, which would replace the headless OpenCV in the same cv2.
+	$(BIN)/python -m pip install --quiet numba pandas tqdm toml
+	$(BIN)/python -m pip install --quiet --no-deps aniposelib==0.8.0
+	# mrcal, to read .cameramodel files back in the tests, has no wheel for Python < 3.12: a
+	# small environment of its own when a python3.12 or newer is found (else those tests skip).
+	-$(MAKE) --no-print-directory mrcal-env
 	touch $@
+
+MRCAL_PYTHON ?= $(firstword $(foreach v,3.12 3.13,$(shell ls $(HOME)/.pyenv/versions/$(v)*/bin/python$(v) /usr/local/bin/python$(v) /usr/bin/python$(v) 2>/dev/null)))
+
+mrcal-env:
+	@if [ -z "$(MRCAL_PYTHON)" ]; then echo "no python3.12+ found: mrcal tests will skip"; exit 0; fi; \
+	$(MRCAL_PYTHON) -m venv $(VENV)/mrcal && \
+	$(VENV)/mrcal/bin/python -m pip install --quiet numpy scipy numpysane gnuplotlib pyyaml && \
+	$(VENV)/mrcal/bin/python -m pip install --quiet --no-deps mrcal==2.5.2.post1
 
 venv: $(BIN)/stereo-bench
 

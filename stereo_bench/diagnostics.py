@@ -5,9 +5,10 @@ the estimate and its board poses (CalibrationResult), and return JSON-ready dict
 
 * ``heldout``: k-fold cross-validation over views. The method calibrates on k-1 folds; each
   held-out view's pose is fitted with those intrinsics fixed (stereo.planar_pose) and its RMS
-  reprojection error measured. On pure noise the held-out RMS exceeds the in-sample one by the
-  parameters the fit spent on the data (for n residuals and p parameters, roughly
-  sqrt((1 + p/n) / (1 - p/n))); much more means the model fits the noise or the views disagree.
+  reprojection error measured. On pure noise the held-out RMS exceeds the in-sample RMS of the
+  same points by what the intrinsics fitted of the noise (the held-out poses are refitted):
+  roughly sqrt((1 + p/n) / (1 - p/n)) for p intrinsics and n residuals, 1.003 for 9 and 3520;
+  much more means the model fits the noise or the views disagree.
 * ``view_outliers``: per-view RMS reprojection error, flagged by the modified z-score
   0.6745 (x - median) / MAD > 3.5 of Iglewicz & Hoaglin ("How to detect and handle outliers",
   1993), one-sided (only views that fit worse than the others), with the scale never below the
@@ -15,14 +16,15 @@ the estimate and its board poses (CalibrationResult), and return JSON-ready dict
 * ``point_outliers``: residuals beyond a robust threshold: sigma from the median absolute residual
   coordinate (1.4826 x median |r|), and |r| > sigma sqrt(2 ln(N / false_alarm)), the level that
   N independent Gaussian residuals (|r|^2 / sigma^2 ~ chi^2 with 2 degrees of freedom) exceed
-  with probability ``false_alarm`` altogether.
+  with probability at most ``false_alarm`` altogether (Bonferroni).
 * ``residual_randomness``: are the residuals noise? The statistic is the correlation of residual
   vectors between neighbouring board points of a view, sum over neighbour pairs r_j . r_k per pair
   over sum |r_j|^2 per point: 0 for noise, towards 1 for a smooth systematic residual (a lens
   model too simple, a bent board, a detector bias). Fitted residuals are not independent (each
   view's pose and the shared intrinsics absorb part of the noise, which makes neighbours slightly
-  anti-correlated), so the null distribution is simulated exactly for the linearized fit:
-  Gaussian noise e, residuals (I - J (J^T J)^+ J^T) e through refine.py's Schur factorization.
+  anti-correlated), so the null distribution is simulated through the linearized fit: Gaussian
+  noise e, residuals (I - J (J^T J)^+ J^T) e through refine.py's Schur factorization, with J the
+  Jacobian of all the intrinsics the method estimated and all the poses.
   One-sided Monte Carlo p-values per view and for the camera (neighbour-pair-weighted mean of the
   views' statistics), flagged below ``alpha``; a per-view flag is a per-view test (about alpha of
   the views of a clean calibration are flagged).
@@ -45,24 +47,16 @@ from .calibrate.refine import OpenCVModel, free_mask, linearize
 from .camera import Camera, project_points
 from .rundir import strict
 from .stereo import planar_pose
+from .uncertainty import check_poses
 
 MIN_TRAINING_VIEWS = 3  # Zhang's minimum for the five pinhole intrinsics (section 3.1)
 MODIFIED_Z = 3.5  # Iglewicz & Hoaglin's recommended cut on the modified z-score
 _CALIBRATION_ERRORS = (ValueError, np.linalg.LinAlgError, RuntimeError, cv2.error)
 
 
-def _check_poses(obs: Observations, rvecs, tvecs) -> tuple[np.ndarray, np.ndarray]:
-    rv, tv = np.asarray(rvecs, dtype=np.float64), np.asarray(tvecs, dtype=np.float64)
-    for name, a in (("rvecs", rv), ("tvecs", tv)):
-        if a.shape != (obs.n_views, 3) or not np.all(np.isfinite(a)):
-            raise ValueError(f"{name}: expected ({obs.n_views}, 3) finite cam_from_board values "
-                             f"(one per view of {obs.camera_name!r}), got shape {a.shape}")
-    return rv, tv
-
-
 def view_residuals(camera: Camera, obs: Observations, rvecs, tvecs) -> list[np.ndarray]:
     """Per view (N_i, 2) px: projected - detected, through the camera and the view's pose."""
-    rv, tv = _check_poses(obs, rvecs, tvecs)
+    rv, tv = check_poses(obs, rvecs, tvecs)
     return [project_points(o, camera.intrinsics, camera.dist, r, t) - p
             for o, p, r, t in zip(obs.object_points, obs.image_points, rv, tv)]
 
@@ -182,7 +176,7 @@ def residual_randomness(camera: Camera, obs: Observations, rvecs, tvecs,
         raise ValueError(f"alpha: expected a level in (0, 1), got {alpha}")
     if int(n_sim) < 1:
         raise ValueError(f"n_sim: expected at least 1 simulation, got {n_sim}")
-    rv, tv = _check_poses(obs, rvecs, tvecs)
+    rv, tv = check_poses(obs, rvecs, tvecs)
     model = OpenCVModel()
     free = free_mask(model.param_names, tuple(parameters or ()))
     lin = linearize(model, model.params_of(camera), free, obs.object_points, obs.image_points,
@@ -193,16 +187,18 @@ def residual_randomness(camera: Camera, obs: Observations, rvecs, tvecs,
         raise ValueError(f"observations of {obs.camera_name!r}: no view has neighbouring board "
                          f"points to correlate")
     views = [v for v, p in enumerate(pairs) if len(p)]
+
+    def statistics(res):  # (views with pairs,) or (views with pairs, S)
+        return np.array([_neighbour_correlation(res[slice(*lin["bounds"][v])], pairs[v])
+                         for v in views])
+
     r = lin["residuals"]
-    observed = np.array([_neighbour_correlation(r[a:b], pairs[v])
-                         for v, (a, b) in enumerate(lin["bounds"]) if len(pairs[v])])
+    observed = statistics(r)
     rng = np.random.default_rng(seed)
     simulated = []
     for start in range(0, int(n_sim), 100):  # chunks: e for all points is N x 2 x S floats
         e = rng.standard_normal(r.shape + (min(100, int(n_sim) - start),))
-        null = _null_residuals(lin, e)
-        simulated.append(np.array([_neighbour_correlation(null[a:b], pairs[v])
-                                   for v, (a, b) in enumerate(lin["bounds"]) if len(pairs[v])]))
+        simulated.append(statistics(_null_residuals(lin, e)))
     simulated = np.concatenate(simulated, axis=1)  # (views with pairs, n_sim)
     w = weights[views] / weights[views].sum()
     cam_observed, cam_null = float(w @ observed), w @ simulated
@@ -236,8 +232,12 @@ def coverage(obs: Observations, grid: tuple[int, int] = (10, 8), raster: int = 1
     if nu < 1 or nv < 1:
         raise ValueError(f"grid: expected (columns, rows) of at least 1 each, got {grid}")
     w, h = obs.image_size
+
+    def in_image(p):
+        return np.all((p >= -0.5) & (p < np.array([w, h]) - 0.5), axis=1)
+
     pts = np.concatenate(obs.image_points)
-    inside = np.all((pts >= -0.5) & (pts < np.array([w, h]) - 0.5), axis=1)
+    inside = in_image(pts)
     col = np.minimum(((pts[inside, 0] + 0.5) * nu / w).astype(int), nu - 1)
     row = np.minimum(((pts[inside, 1] + 0.5) * nv / h).astype(int), nv - 1)
     counts = np.zeros((nv, nu), dtype=int)
@@ -248,7 +248,7 @@ def coverage(obs: Observations, grid: tuple[int, int] = (10, 8), raster: int = 1
     s = min(1.0, raster / max(w, h))
     mask = np.zeros((max(1, round(h * s)), max(1, round(w * s))), dtype=np.uint8)
     for p in obs.image_points:
-        q = p[np.all((p >= -0.5) & (p < np.array([w, h]) - 0.5), axis=1)]
+        q = p[in_image(p)]
         if len(q) >= 3:
             poly = cv2.convexHull(np.round(((q + 0.5) * s - 0.5) * 16).astype(np.int32))
             cv2.fillConvexPoly(mask, poly, 1, lineType=cv2.LINE_8, shift=4)

@@ -42,7 +42,9 @@ from .rundir import strict
 _MODEL = OpenCVModel()
 
 
-def _poses(obs: Observations, rvecs, tvecs) -> tuple[np.ndarray, np.ndarray]:
+def check_poses(obs: Observations, rvecs, tvecs) -> tuple[np.ndarray, np.ndarray]:
+    """(rvecs, tvecs) as (V, 3) float arrays, or a ValueError naming the one that is not one
+    finite cam_from_board pose per view of ``obs``."""
     rv, tv = np.asarray(rvecs, dtype=np.float64), np.asarray(tvecs, dtype=np.float64)
     for name, a in (("rvecs", rv), ("tvecs", tv)):
         if a.shape != (obs.n_views, 3) or not np.all(np.isfinite(a)):
@@ -59,8 +61,8 @@ def _free(parameters) -> np.ndarray:
 
 
 def _linearized(camera: Camera, obs: Observations, rvecs, tvecs, parameters):
-    """(linearization of refine.py, free mask, names, sigma^2, degrees of freedom)."""
-    rv, tv = _poses(obs, rvecs, tvecs)
+    """(linearization of refine.py, free parameter names, sigma^2, degrees of freedom)."""
+    rv, tv = check_poses(obs, rvecs, tvecs)
     free = _free(parameters)
     if tuple(camera.size) != tuple(obs.image_size):
         raise ValueError(f"camera {camera.name!r} is {camera.width}x{camera.height} but the "
@@ -74,7 +76,7 @@ def _linearized(camera: Camera, obs: Observations, rvecs, tvecs, parameters):
                          f"{int(free.sum())} intrinsics and {6 * obs.n_views} pose parameters; "
                          f"the noise variance needs more residuals than parameters")
     names = [n for n, f in zip(_MODEL.param_names, free) if f]
-    return lin, free, names, float(np.sum(r * r)) / dof, dof
+    return lin, names, float(np.sum(r * r)) / dof, dof
 
 
 def _pose_covariances(lin: dict) -> np.ndarray:
@@ -96,7 +98,7 @@ def parameter_covariance(camera: Camera, obs: Observations, rvecs, tvecs,
     rx, ry, rz in rad and tx, ty, tz in mm, cam_from_board), ``view_ids``, ``sigma_px`` (the
     per-coordinate residual standard deviation), ``dof``, ``n_residuals`` and ``rank``.
     """
-    lin, _, names, sigma2, dof = _linearized(camera, obs, rvecs, tvecs, parameters)
+    lin, names, sigma2, dof = _linearized(camera, obs, rvecs, tvecs, parameters)
     cov = sigma2 * lin["S_inv"]
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
     rank = rank_info(lin["S"], names)
@@ -128,16 +130,22 @@ def parameter_covariance(camera: Camera, obs: Observations, rvecs, tvecs,
 def median_board_distance(obs: Observations, rvecs, tvecs) -> float:
     """Median over the views of the distance (mm) from the camera centre to the board points'
     centroid: the working distance the calibration data speak for."""
-    rv, tv = _poses(obs, rvecs, tvecs)
+    rv, tv = check_poses(obs, rvecs, tvecs)
     R = rodrigues_to_matrix(rv)
     centroids = np.array([o.mean(0) for o in obs.object_points])
     return float(np.median(np.linalg.norm(np.einsum("vij,vj->vi", R, centroids) + tv, axis=1)))
 
 
+def _check_distance(distance_mm) -> float:
+    d = float(distance_mm)
+    if not (np.isfinite(d) and d > 0):
+        raise ValueError(f"distance_mm: expected a positive finite distance, got {distance_mm}")
+    return d
+
+
 def _points_at(camera: Camera, uv: np.ndarray, distance_mm: float) -> np.ndarray:
     """Camera-frame points (M, 3) at ``distance_mm`` along the estimate's rays of pixels (M, 2)."""
-    if not (np.isfinite(distance_mm) and distance_mm > 0):
-        raise ValueError(f"distance_mm: expected a positive finite distance, got {distance_mm}")
+    distance_mm = _check_distance(distance_mm)
     xy = camera.unproject(uv)
     rays = np.column_stack([xy, np.ones(len(xy))])
     return rays * (distance_mm / np.linalg.norm(rays, axis=1, keepdims=True))
@@ -180,7 +188,7 @@ def projection_covariance(camera: Camera, obs: Observations, rvecs, tvecs,
                           parameters: Sequence[str], uv, distance_mm: float) -> np.ndarray:
     """(M, 2, 2) px^2: covariance of the mean-frames projection q+ of pixels ``uv`` (M, 2) at
     ``distance_mm``, sigma^2 dq/db (J^T J)^-1 dq/db^T over all intrinsics and poses b."""
-    lin, _, _, sigma2, _ = _linearized(camera, obs, rvecs, tvecs, parameters)
+    lin, _, sigma2, _ = _linearized(camera, obs, rvecs, tvecs, parameters)
     return _propagate(lin, sigma2, camera, rvecs, tvecs, uv, distance_mm, parameters)
 
 
@@ -216,25 +224,25 @@ def projection_uncertainty(camera: Camera, obs: Observations, rvecs, tvecs,
     nu, nv = (int(g) for g in grid)
     if nu < 2 or nv < 2:
         raise ValueError(f"grid: expected (columns, rows) of at least 2 each, got {grid}")
-    if distance_mm is None:
-        distance_mm = median_board_distance(obs, rvecs, tvecs)
+    distance_mm = _check_distance(median_board_distance(obs, rvecs, tvecs)
+                                  if distance_mm is None else distance_mm)
     u = np.linspace(0.0, camera.width - 1, nu)
     v = np.linspace(0.0, camera.height - 1, nv)
     centre = np.array([[(camera.width - 1) / 2, (camera.height - 1) / 2]])
     uv = np.concatenate([centre, np.stack(np.meshgrid(u, v), -1).reshape(-1, 2)])
-    lin, _, names, sigma2, _ = _linearized(camera, obs, rvecs, tvecs, parameters)
+    lin, names, sigma2, _ = _linearized(camera, obs, rvecs, tvecs, parameters)
     valid = camera.invertible(uv)
     sigma = np.full(len(uv), np.nan)
     if valid.any():
         sigma[valid] = _worst_direction(_propagate(lin, sigma2, camera, rvecs, tvecs, uv[valid],
-                                                   float(distance_mm), parameters))
+                                                   distance_mm, parameters))
     on_grid = sigma[1:]
     worst = int(np.nanargmax(on_grid)) if np.isfinite(on_grid).any() else None
     return strict({
         "measure": "worst-direction 1-sigma (px): sqrt of the largest eigenvalue of the 2x2 "
                    "covariance of the mean-frames projection",
         "parameters": names,
-        "distance_mm": float(distance_mm),
+        "distance_mm": distance_mm,
         "u": u, "v": v,
         "map_px": on_grid.reshape(nv, nu),
         "centre_px": float(sigma[0]),

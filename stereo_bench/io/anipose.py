@@ -78,7 +78,7 @@ def _camera(table, key: str, where: str, mm_per_unit: float) -> Camera:
         raise ValueError(f"{at}: a fisheye camera (cv2.fisheye's model), which the camera core "
                          f"does not hold")
     try:
-        K = common.numbers(table["matrix"], (3, 3), f"{at}: matrix")
+        K = common.camera_matrix(table["matrix"], f"{at}: matrix")
         dist = np.asarray(table["distortions"], dtype=np.float64).reshape(-1)
         w, h = common.numbers(table["size"], (2,), f"{at}: size [w, h]")
         rvec = common.numbers(table["rotation"], (3,), f"{at}: rotation")
@@ -88,9 +88,6 @@ def _camera(table, key: str, where: str, mm_per_unit: float) -> Camera:
         raise ValueError(f"{at}: missing {e.args[0]!r}") from None
     except (TypeError, ValueError) as e:
         raise ValueError(f"{at}: {e}") from None
-    if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
-        raise ValueError(f"{at}: matrix must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got "
-                         f"{K.tolist()}")
     if dist.size > 8:
         raise ValueError(f"{at}: distortions has {dist.size} coefficients; the camera core holds "
                          f"at most 8 [k1, k2, p1, p2, k3, k4, k5, k6]")
@@ -101,8 +98,10 @@ def _camera(table, key: str, where: str, mm_per_unit: float) -> Camera:
 
 
 def read(path) -> list[Camera]:
-    """The rig of a calibration.toml, in the order of its tables' numbers."""
-    path = common.existing(path, "anipose calibration file")
+    """The rig of a calibration.toml (or of the folder holding it), in the order of its tables'
+    numbers."""
+    path = common.existing(common.in_folder(path, (FILE, "*.toml"), "anipose calibration file"),
+                           "anipose calibration file")
     try:
         doc = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as e:

@@ -187,20 +187,17 @@ def _read_images_txt(path: Path) -> list[tuple]:
 
 def _snapshot(cams: dict, images: list[tuple], where: str) -> list[Camera]:
     """The rig of a model with one image per camera, in the images' id order."""
-    per_camera: dict[int, list] = {}
-    for image in images:
-        per_camera.setdefault(image[3], []).append(image)
-    for cid in cams:
-        count = len(per_camera.get(cid, []))
-        if count != 1:
-            raise ValueError(f"{cams[cid][4]}: camera {cid} has {count} images; a rig snapshot "
-                             f"has exactly one image per camera (its pose)")
     out = []
     for iid, rvec, tvec, cid, name, at in sorted(images, key=lambda im: im[0]):
         if cid not in cams:
             raise ValueError(f"{at}: image {iid} refers to camera {cid}, which {where} lacks")
         model, width, height, params, cam_at = cams[cid]
         out.append(camera_from_model(name, model, width, height, params, rvec, tvec, cam_at))
+    per_camera = [im[3] for im in images]
+    for cid in cams:
+        if per_camera.count(cid) != 1:
+            raise ValueError(f"{cams[cid][4]}: camera {cid} has {per_camera.count(cid)} images; a "
+                             f"rig snapshot has exactly one image per camera (its pose)")
     if not out:
         raise ValueError(f"{where}: no cameras")
     return common.rig(out, where)

@@ -56,8 +56,8 @@ def refuse_distortion(camera: Camera, fmt: str, kept: int) -> None:
     extra = np.flatnonzero(camera.dist[kept:])
     if extra.size:
         i = kept + int(extra[0])
-        raise ValueError(f"camera {camera.name!r}: {DIST_NAMES[i]} = {camera.dist[i]!r} is not "
-                         f"0; {fmt} holds only {', '.join(DIST_NAMES[:kept])}")
+        raise ValueError(f"camera {camera.name!r}: {DIST_NAMES[i]} = {float(camera.dist[i])!r} "
+                         f"is not 0; {fmt} holds only {', '.join(DIST_NAMES[:kept])}")
 
 
 def refuse_name(camera: Camera, fmt: str, allowed: str, pattern) -> None:
@@ -91,6 +91,15 @@ def rotation(value, where: str) -> np.ndarray:
     return nearest_rotation(R)
 
 
+def camera_matrix(value, where: str) -> np.ndarray:
+    """A camera matrix read from a file: [[fx, s, cx], [0, fy, cy], [0, 0, 1]]."""
+    K = numbers(value, (3, 3), where)
+    if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+        raise ValueError(f"{where}: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got "
+                         f"{K.tolist()}")
+    return K
+
+
 def numbers(value, shape: tuple, where: str) -> np.ndarray:
     """Finite float64 numbers of ``shape`` read from a file, or a ValueError naming ``where``."""
     try:
@@ -104,6 +113,22 @@ def numbers(value, shape: tuple, where: str) -> np.ndarray:
     if not np.all(np.isfinite(a)):
         raise ValueError(f"{where}: expected finite numbers, got {a.tolist()}")
     return a
+
+
+def in_folder(path, patterns: Sequence[str], what: str) -> Path:
+    """``path`` itself, or when it is a folder the one file in it matching the first of
+    ``patterns`` (glob patterns, in order of preference) that matches any."""
+    path = Path(path)
+    if not path.is_dir():
+        return path
+    for pattern in patterns:
+        found = sorted(path.glob(pattern))
+        if len(found) == 1:
+            return found[0]
+        if found:
+            raise ValueError(f"{path}: {len(found)} files match {pattern} "
+                             f"({', '.join(f.name for f in found)}); name the {what}")
+    raise ValueError(f"{path}: no {what} ({' or '.join(patterns)}) in this folder")
 
 
 def existing(path, what: str, folder: bool = False) -> Path:

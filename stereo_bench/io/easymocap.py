@@ -22,7 +22,6 @@ import re
 from pathlib import Path
 from typing import Sequence
 
-import numpy as np
 
 from ..camera import Camera, matrix_to_rodrigues
 from ..rundir import write_text
@@ -87,10 +86,8 @@ def read(path) -> list[Camera]:
         cameras = []
         for name in names:
             at_i, at_e = f"{intri_path}: camera {name!r}", f"{extri_path}: camera {name!r}"
-            K = node_matrix(intri.getNode(f"K_{name}"), (3, 3), f"{at_i}: K_{name}")
-            if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
-                raise ValueError(f"{at_i}: K_{name} must be [[fx, s, cx], [0, fy, cy], "
-                                 f"[0, 0, 1]], got {K.tolist()}")
+            K = common.camera_matrix(node_matrix(intri.getNode(f"K_{name}"), (3, 3),
+                                                 f"{at_i}: K_{name}"), f"{at_i}: K_{name}")
             dist = node_distortion(intri.getNode(f"dist_{name}"), f"{at_i}: dist_{name}")
             height = node_int(intri.getNode(f"H_{name}"), f"{at_i}: H_{name} (image height)")
             width = node_int(intri.getNode(f"W_{name}"), f"{at_i}: W_{name} (image width)")

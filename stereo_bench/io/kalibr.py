@@ -101,8 +101,9 @@ def _camera(entry, key: str, where: str, rvec, tvec) -> Camera:
 
 
 def read(path) -> list[Camera]:
-    """The rig of a camchain file, cam0 at the identity."""
-    path = common.existing(path, "Kalibr camchain file")
+    """The rig of a camchain file (or of the folder holding one), cam0 at the identity."""
+    path = common.existing(common.in_folder(path, ("camchain*.yaml", "camchain*.yml"),
+                                            "Kalibr camchain file"), "Kalibr camchain file")
     try:
         chain = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:

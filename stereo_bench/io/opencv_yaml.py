@@ -122,10 +122,8 @@ def _read_intrinsics(node_of, where: str, default_name: str, suffix: str = "",
                      keys=("camera_matrix", "distortion_coefficients"), rvec=(0, 0, 0),
                      tvec=(0, 0, 0)) -> Camera:
     """A Camera from the nodes ``node_of(key)`` of one camera's intrinsics."""
-    K = node_matrix(node_of(keys[0]), (3, 3), f"{where}: {keys[0]}")
-    if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
-        raise ValueError(f"{where}: {keys[0]} must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got "
-                         f"{K.tolist()}")
+    K = common.camera_matrix(node_matrix(node_of(keys[0]), (3, 3), f"{where}: {keys[0]}"),
+                             f"{where}: {keys[0]}")
     dist = node_distortion(node_of(keys[1]), f"{where}: {keys[1]}")
     name = node_string(node_of(f"camera_name{suffix}"), default_name)
     try:
