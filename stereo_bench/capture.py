@@ -24,6 +24,7 @@ calibrations/<method>/<camera>.json | .yaml | _views.npz, rig/<method>.json) plu
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import time
 
@@ -32,6 +33,7 @@ import numpy as np
 from .calibrate import get_calibrator
 from .camera import matrix_to_rodrigues
 from .config import CalibrationConfig
+from .detect import measure_disc_diameter
 from .diagnostics import diagnose, heldout
 from .evaluate import Estimate, calibrate_cameras, clear_calibrations, load_or_detect
 from .image_folders import ImageFolders
@@ -68,6 +70,77 @@ def _estimate_report(method: str, est: Estimate, folds: int, seed: int) -> dict:
     except (ValueError, np.linalg.LinAlgError) as e:
         report["uncertainty"] = {"error": f"{type(e).__name__}: {e}"}
     return report
+
+
+#: Images per camera the disc diameter is measured on (a median over all their discs).
+DIAMETER_IMAGES = 8
+#: A circle grid's provisional disc diameter, as a share of the distance between neighbouring
+#: centres, when the user does not know it: measure_disc_diameter needs a guess within -20 % /
+#: +60 %, so this covers printed diameters of 0.31 to 0.63 of the pitch; a second measurement
+#: from the first one's answer settles it.
+DIAMETER_GUESS = 0.5
+
+
+def nearest_pitch_mm(pattern) -> float:
+    """The distance between neighbouring feature points of a board, mm."""
+    obj = pattern.object_points()[:, :2]
+    d = np.linalg.norm(obj[:, None] - obj[None], axis=-1)
+    return float(d[d > 0].min())
+
+
+def with_measured_diameter(source: ImageFolders) -> tuple[ImageFolders, str]:
+    """A circle grid's capture with the disc diameter measured from its images (module notes),
+    and a sentence saying so; ValueError when no disc could be measured."""
+    pattern = dataclasses.replace(source.pattern,
+                                  diameter_mm=DIAMETER_GUESS * nearest_pitch_mm(source.pattern))
+    images = []
+    for c in range(len(source.cameras)):
+        have = [f for f in range(source.frames) if source.files[c][f] is not None]
+        for f in have[:: max(1, len(have) // DIAMETER_IMAGES)][:DIAMETER_IMAGES]:
+            try:
+                images.append(source.image(c, f))
+            except (OSError, ValueError):
+                continue  # recorded when the detection reads it again
+    first = measure_disc_diameter(images, pattern)
+    second = measure_disc_diameter(images, dataclasses.replace(pattern, diameter_mm=first))
+    pattern = dataclasses.replace(pattern, diameter_mm=second)
+    return (dataclasses.replace(source, pattern=pattern),
+            f"disc diameter measured from {len(images)} images: {second:.3f} mm (first pass "
+            f"from a guess of {DIAMETER_GUESS:.0%} of the pitch: {first:.3f} mm); give "
+            f"--diameter-mm if it is known")
+
+
+#: A held-out error this much above the in-sample one says the model fits the noise.
+OVERFIT_RATIO = 1.5
+
+
+def flags(results: dict) -> list[str]:
+    """What looks wrong in a capture's estimates, in words: a model that folds inside the image
+    (an overfitted high-order distortion, TRAPS.md), a held-out error far above the fit's, views
+    that fit worse than the others, detections far off their reprojection."""
+    out = []
+    for m, cams in results["calibration"].items():
+        for cam, e in cams.items():
+            if "error" in e:
+                continue
+            where = f"{m}, camera {cam}"
+            if not e["validity"]["usable"]:
+                out.append(f"{where}: the lens model has no unique ray over "
+                           f"{1 - e['validity']['valid_fraction']:.0%} of the image (it folds "
+                           f"there); projections and triangulations there are meaningless")
+            ratio = e.get("heldout", {}).get("ratio")
+            if isinstance(ratio, (int, float)) and ratio > OVERFIT_RATIO:
+                out.append(f"{where}: held-out error {ratio:.2f}x the fit's: the model fits the "
+                           f"noise (fewer coefficients, or more views)")
+            points = e["diagnostics"]["points"]["flagged"]
+            if points:
+                worst = points[0]
+                out.append(f"{where}: {len(points)} detection(s) off their reprojection by more "
+                           f"than {e['diagnostics']['points']['threshold_px']:.2f} px (worst "
+                           f"{worst['residual_px']:.2f} px in "
+                           f"{results['frame_names'][worst['view_id']]} at "
+                           f"({worst['image_point'][0]:.0f}, {worst['image_point'][1]:.0f}))")
+    return out
 
 
 def agreement(estimates: dict[str, Estimate]) -> list[dict]:
@@ -114,15 +187,19 @@ def _opencv_rig(rig, image_points, source) -> dict:
 
 def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration:
                       CalibrationConfig = CalibrationConfig(), folds: int = DEFAULT_FOLDS,
-                      seed: int = 0, progress=None) -> dict:
+                      seed: int = 0, progress=None, notes_in: list[str] = ()) -> dict:
     """Every stage on a real capture, written under ``out`` (module notes); returns the dict
     written to results.json. A camera or method that fails is recorded with its reason and the
-    others go on; the detections are reused only for the same images and board."""
+    others go on; the detections are reused only for the same images and board. ``notes_in``:
+    what the caller found out about the capture (e.g. a measured disc diameter), kept in the
+    results."""
     for m in methods:
         get_calibrator(m)
     paths = CapturePaths(out)
     trial = paths.trial
     notes = Notes()
+    for note in notes_in:
+        notes.add(note)
     write_json(paths.frames, source.index())
     dets, detect_s, det_fp = load_or_detect(source, trial, progress, notes)
     clear_calibrations(trial)
@@ -142,6 +219,8 @@ def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration
         "cameras": [{"name": c.name, "width": c.width, "height": c.height}
                     for c in source.cameras],
         "frames": source.frames,
+        # Views are numbered by frame index (view_ids); this is each index's name.
+        "frame_names": [source.frame_name(f) for f in range(source.frames)],
         "methods": methods,
         "detection": {c.name: {"frames": source.frames, "found": int(d.found.sum()),
                                "errors": {source.frame_name(f): e for f, e in d.errors.items()},
@@ -155,6 +234,7 @@ def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration
         "warnings": source.warnings,
         "detections_fingerprint": det_fp,
     }
+    results["warnings"] += flags(results)
     diagnostics_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     if len(source.cameras) >= 2:
@@ -176,6 +256,6 @@ def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration
     write_json(paths.results, results)
     results = strict(results)
     results["plots"] = [str(p.relative_to(paths.root)) for p in plot_capture(
-        results, estimates, [source.frame_name(f) for f in range(source.frames)], paths.plots)]
+        results, estimates, results["frame_names"], paths.plots)]
     write_json(paths.results, results)
     return results

@@ -229,6 +229,18 @@ def board_from_args(args):
         raise ValueError(f"{source}: {e}") from None
 
 
+def _diameter_given(args) -> bool:
+    """Whether the user gave the circle grid's disc diameter (an option, or in --board-file)."""
+    if args.board_file:
+        import yaml
+
+        with open(args.board_file) as f:
+            data = yaml.safe_load(f)
+        data = data.get("pattern", data) if isinstance(data, dict) else {}
+        return "diameter_mm" in data
+    return args.diameter_mm is not None
+
+
 def _camera_folders(specs: list[str]) -> dict[str, str]:
     """NAME=FOLDER (or glob); a bare folder is named after itself."""
     cameras = {}
@@ -243,7 +255,7 @@ def _camera_folders(specs: list[str]) -> dict[str, str]:
 
 
 def cmd_calibrate_images(args) -> int:
-    from .capture import calibrate_capture
+    from .capture import calibrate_capture, with_measured_diameter
     from .config import CalibrationConfig
     from .image_folders import ImageFolders
     from .report import capture_markdown
@@ -252,6 +264,11 @@ def cmd_calibrate_images(args) -> int:
     methods = _methods(args.methods)
     pattern = board_from_args(args)
     source = ImageFolders.open(_camera_folders(args.cameras), pattern)
+    measured = []
+    if hasattr(pattern, "diameter_mm") and not _diameter_given(args):
+        source, note = with_measured_diameter(source)
+        measured.append(note)
+        console.print(note, markup=False, highlight=False)
     out = Path(args.out or Path("out") / "capture")
     calibration = CalibrationConfig(refine_intrinsics=args.refine_intrinsics)
     if not 2 <= args.folds <= 100:
@@ -262,7 +279,8 @@ def cmd_calibrate_images(args) -> int:
     with locked(out), progress_bar() as bar:
         task = bar.add_task("detect", total=None)
         results = calibrate_capture(source, methods, out, calibration, args.folds,
-                                    progress=lambda d, n: bar.update(task, completed=d, total=n))
+                                    progress=lambda d, n: bar.update(task, completed=d, total=n),
+                                    notes_in=measured)
     paths = CapturePaths(out)
     text = capture_markdown(results, f"Calibration of {', '.join(args.cameras)}")
     write_text(paths.report, text)

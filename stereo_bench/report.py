@@ -305,12 +305,12 @@ def _std(entry: dict, name: str) -> str:
 
 def _capture_camera_rows(results: dict, cam: str) -> list[str]:
     lines = _header("method", "RPE px", "held-out px", "held-out / RPE", "flagged views",
-                    "residuals random (p)", "valid image", "proj. σ centre px",
+                    "flagged points", "residuals random (p)", "valid image", "proj. σ centre px",
                     "proj. σ worst px", "fx", "fy", "cx", "cy")
     for m in results["methods"]:
         e = results["calibration"][m].get(cam, {})
         if "error" in e:
-            lines.append(f"| {m} | failed: {e['error']} |" + " |" * 11)
+            lines.append(f"| {m} | failed: {e['error']} |" + " |" * 12)
             continue
         h, d = e.get("heldout", {}), e.get("diagnostics", {})
         proj = e.get("uncertainty", {}).get("projection", {})
@@ -320,7 +320,7 @@ def _capture_camera_rows(results: dict, cam: str) -> list[str]:
         lines.append(
             f"| {m} | {_num(e.get('rpe_rms_px'), 4)} | {_num(h.get('heldout_rms_px'), 4)} | "
             f"{_num(h.get('ratio'), 3)} | {len(d.get('views', {}).get('flagged', []))} | "
-            f"{random_} | {_num(e['validity']['valid_fraction'] * 100, 1)} % | "
+            f"{len(d.get('points', {}).get('flagged', []))} | {random_} | {_num(e['validity']['valid_fraction'] * 100, 1)} % | "
             f"{_num(proj.get('centre_px'), 3)} | {_num(proj.get('worst_px'), 3)} | "
             + " | ".join(_std(e, n) for n in ("fx", "fy", "cx", "cy")) + " |")
     return lines
@@ -404,8 +404,9 @@ def capture_markdown(results: dict, title: str) -> str:
             by_view = {}
             for m, v in flagged:
                 by_view.setdefault(v, []).append(m)
-            lines += ["Views that fit worse than the others (frame: methods): " + "; ".join(
-                f"{v}: {', '.join(ms)}" for v, ms in sorted(by_view.items())) + ".", ""]
+            lines += ["Views that fit worse than the others: " + "; ".join(
+                f"{results['frame_names'][v]} ({', '.join(ms)})"
+                for v, ms in sorted(by_view.items())) + ".", ""]
         lines += ["Agreement between methods (projection difference over the image):", ""]
         lines += _agreement_rows(results["agreement"][cam]) + [""]
     if results["rig"]:

@@ -141,3 +141,30 @@ def test_real_opencv_pair_through_the_command(tmp_path):
     assert rig["baseline_mm"]["right"] == pytest.approx(3.345, abs=0.05)
     peer = rig["opencv_multiview"]["cameras"]["right"]
     assert peer["difference_rotation_deg"] < 0.05 and peer["difference_centre_mm"] < 0.01
+
+
+def test_circle_grid_diameter_is_measured_when_not_given(tmp_path):
+    """An asymmetric grid described as OpenCV describes it (4 x 11 style patternSize and its
+    squareSize), the disc diameter left out: measured from the images, and the calibration
+    matches the one given the true diameter."""
+    d = yaml.safe_load((ROOT / "configs" / "quickstart.yaml").read_text())
+    d["trajectory"]["frames"] = 8
+    d["pattern"] = {"kind": "asymmetric_circles"}  # 10 per row x 9 rows, 9 mm discs
+    cfg = parse_rig(d)
+    from stereo_bench.dataset import write_dataset
+
+    ds = write_dataset(cfg, tmp_path / "ds")
+    folder = ds.root / "images" / "left"
+    args = ["calibrate-images", f"left={folder}", "--board", "asymmetric_circles",
+            "--circles", "10x9", "--spacing-mm", f"{22 / 2 ** 0.5!r}", "--methods", "opencv",
+            "--folds", "3"]
+    assert main(args + ["--out", str(tmp_path / "measured")]) == 0
+    assert main(args + ["--diameter-mm", "9", "--out", str(tmp_path / "given")]) == 0
+    measured, given = (json.loads((tmp_path / k / "results.json").read_text())
+                       for k in ("measured", "given"))
+    assert measured["pattern"]["diameter_mm"] == pytest.approx(9.0, rel=0.02)
+    assert any("disc diameter measured" in n for n in measured["notes"])
+    # Clean renders fit to about 0.01 px, a figure set by the centroid windows the diameter
+    # sizes: a 1-2 % different diameter moves it by a few thousandths of a pixel.
+    a, b = (r["calibration"]["opencv"]["left"]["rpe_rms_px"] for r in (measured, given))
+    assert abs(a - b) < 0.005 and max(a, b) < 0.03
