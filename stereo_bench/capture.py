@@ -31,7 +31,6 @@ import time
 import numpy as np
 
 from .calibrate import get_calibrator
-from .camera import matrix_to_rodrigues
 from .config import CalibrationConfig
 from .detect import measure_disc_diameter
 from .diagnostics import diagnose, heldout
@@ -42,6 +41,7 @@ from .multiview_ref import opencv_multiview
 from .pipeline import rig_of, rig_summary
 from .plots import plot_capture
 from .rundir import CapturePaths, Notes, strict, write_json
+from .stereo import rig_errors
 from .uncertainty import parameter_covariance, projection_uncertainty
 
 DEFAULT_FOLDS = 5
@@ -175,13 +175,13 @@ def _opencv_rig(rig, image_points, source) -> dict:
         return {"error": f"{type(e).__name__}: {e}"}
     out = {"opencv_version": ref.log.get("opencv_version"), "rms_px": ref.rms_px,
            "frames_used": int(ref.frames_used.sum()), "cameras": {}}
-    for ours, theirs in zip(rig.cameras[1:], ref.cameras[1:]):
-        d_rot = np.degrees(np.linalg.norm(matrix_to_rodrigues(theirs.R @ ours.R.T)))
-        out["cameras"][ours.name] = {
+    diff = rig_errors(ref.cameras, rig.cameras)  # OpenCV's rig against the project's
+    for i, theirs in enumerate(ref.cameras[1:], 1):
+        out["cameras"][theirs.name] = {
             "baseline_mm": float(np.linalg.norm(theirs.center)),
             "rotation_deg": float(np.degrees(np.linalg.norm(theirs.rvec))),
-            "difference_rotation_deg": float(d_rot),
-            "difference_centre_mm": float(np.linalg.norm(theirs.center - ours.center))}
+            "difference_rotation_deg": float(diff["rotation_deg"][i]),
+            "difference_centre_mm": float(diff["centre_mm"][i])}
     return out
 
 

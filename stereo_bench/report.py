@@ -317,8 +317,12 @@ def _capture_camera_rows(results: dict, cam: str) -> list[str]:
         rnd = d.get("randomness", {})
         random_ = ("–" if "p_value" not in rnd else
                    f"{'no' if rnd['flagged'] else 'yes'} ({rnd['p_value']:.3f})")
+        views = h.get("views", [])
+        scored = sum(v.get("heldout_rms_px") is not None for v in views)
+        # Held out over fewer views than the fit (a fold failed) is not the same figure.
+        some = f" ({scored}/{len(views)} views)" if scored < len(views) else ""
         lines.append(
-            f"| {m} | {_num(e.get('rpe_rms_px'), 4)} | {_num(h.get('heldout_rms_px'), 4)} | "
+            f"| {m} | {_num(e.get('rpe_rms_px'), 4)} | {_num(h.get('heldout_rms_px'), 4)}{some} | "
             f"{_num(h.get('ratio'), 3)} | {len(d.get('views', {}).get('flagged', []))} | "
             f"{len(d.get('points', {}).get('flagged', []))} | {random_} | {_num(e['validity']['valid_fraction'] * 100, 1)} % | "
             f"{_num(proj.get('centre_px'), 3)} | {_num(proj.get('worst_px'), 3)} | "

@@ -43,7 +43,8 @@ from .calibrate.base import MIN_POINTS_PER_VIEW
 from .calibrate.homography import fit_homography
 from .calibrate.refine import OpenCVModel, refine
 from .calibrate.zhang import extrinsics_from_homography
-from .camera import (DIST_NAMES, INTRINSIC_NAMES, Camera, compose, geodesic_distance, invert,
+from .camera import (DIST_NAMES, INTRINSIC_NAMES, Camera, DistortionNotInvertibleError, compose,
+                     geodesic_distance, invert,
                      matrix_to_rodrigues, nearest_rotation, project_points,
                      project_with_jacobians, rodrigues_to_matrix, rotate_jacobian)
 
@@ -497,8 +498,18 @@ def planar_pose(camera: Camera, object_points: np.ndarray, image_points: np.ndar
     section 3.1 does with K = I, then refined to the pixel reprojection error's minimum with
     the intrinsics fixed (refine.py; the homography's algebraic fit in normalized coordinates
     left the rig's start at 13 px RMS on a noisy studio). Starts the rig's adjustment for the
-    frames a camera's own calibration did not use."""
-    H = fit_homography(object_points[:, :2], camera.unproject(image_points))
+    frames a camera's own calibration did not use, and every held-out view of
+    diagnostics.heldout.
+
+    Where the estimate's distortion has no unique ray at some of the points (an overfitted
+    model folds inside the image, TRAPS.md), the homography starts from the pixels with the
+    distortion left out: the refinement only projects, so the pose is still the one that best
+    fits the view through the estimate as it is, and its residuals show what the fold costs."""
+    try:
+        xy = camera.unproject(image_points)
+    except DistortionNotInvertibleError:
+        xy = camera.pixels_to_distorted_normalized(image_points)
+    H = fit_homography(object_points[:, :2], xy)
     rvec, tvec = extrinsics_from_homography(np.eye(3), H)
     model = OpenCVModel()
     params = model.params_of(camera)

@@ -168,10 +168,20 @@ def rank_info(S: np.ndarray, names: list[str], rcond: float = 1e-10) -> dict:
     """
     if len(names) == 0:
         return {"rank": 0, "n_free": 0, "condition": 1.0, "rcond": rcond, "unidentifiable": []}
-    d = np.sqrt(np.maximum(np.diag(S), 1e-300))
-    ev, vec = np.linalg.eigh(S / np.outer(d, d))
+    diag = np.diag(S)
+    # A parameter the data do not touch at all (zero information) is unidentifiable as it is;
+    # scaling by its zero diagonal would overflow the rest of the matrix.
+    untouched = ~(diag > 0) | ~np.isfinite(diag)
+    d = np.sqrt(np.where(untouched, 1.0, diag))
+    scaled = np.where(np.outer(untouched, untouched) | np.eye(len(d), dtype=bool), 0.0,
+                      S / np.outer(d, d))
+    scaled[np.diag_indices(len(d))] = np.where(untouched, 0.0, 1.0)
+    if not np.all(np.isfinite(scaled)):
+        return {"rank": 0, "n_free": len(names), "condition": float("inf"), "rcond": rcond,
+                "unidentifiable": list(names)}
+    ev, vec = np.linalg.eigh(scaled)
     null = ev < rcond * ev[-1]
-    weak = np.abs(vec[:, null]).max(axis=1, initial=0.0) > 0.1
+    weak = (np.abs(vec[:, null]).max(axis=1, initial=0.0) > 0.1) | untouched
     return {
         "rank": int(np.sum(~null)),
         "n_free": len(names),
