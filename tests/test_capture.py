@@ -168,3 +168,31 @@ def test_circle_grid_diameter_is_measured_when_not_given(tmp_path):
     # sizes: a 1-2 % different diameter moves it by a few thousandths of a pixel.
     a, b = (r["calibration"]["opencv"]["left"]["rpe_rms_px"] for r in (measured, given))
     assert abs(a - b) < 0.005 and max(a, b) < 0.03
+
+
+def test_random_board_options_never_give_a_traceback(rendered, tmp_path, capsys):
+    """calibrate-images with options drawn at random from plausible and nasty values: each exits
+    0, 1 or 2 with a message, never a traceback, and writes only into --out."""
+    import random
+
+    _, _, folders, _ = rendered
+    rng = random.Random(11)
+    values = ["9x6", "8x11", "0x0", "-3x4", "x", "1e9x2", "5x5", "", "10", "2.5", "-1", "nan",
+              "inf", "0", "1e12", "DICT_4X4_50", "DICT_NOPE", "../x"]
+    options = ["--inner-corners", "--squares", "--circles", "--square-mm", "--marker-mm",
+               "--dictionary", "--spacing-mm", "--diameter-mm", "--folds", "--methods"]
+    kinds = ["checkerboard", "charuco", "symmetric_circles", "asymmetric_circles"]
+    for case in range(25):
+        argv = ["calibrate-images", f"left={folders['left']}", "--board", rng.choice(kinds)]
+        for option in rng.sample(options, rng.randint(1, 4)):
+            argv += [option, rng.choice(values)]
+        out = tmp_path / f"o{case}"
+        try:
+            code = main(argv + ["--out", str(out)])
+        except SystemExit as e:  # argparse's own refusal of a value of the wrong type
+            code = e.code
+        err = capsys.readouterr().err
+        assert code in (0, 1, 2), (argv, code)
+        assert "Traceback" not in err, (argv, err)
+        assert code == 0 or "error" in err, (argv, err)
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith("o")) == []
