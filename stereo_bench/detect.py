@@ -4,22 +4,35 @@ This is the measuring instrument of the benchmark, so it works as a careful user
 detectors find the board, the board's own appearance (never the ground truth) fixes the order, and
 the points are then measured as precisely as the image allows.
 
-* Checkerboard, ``"classic"`` (default): findChessboardCorners, then cornerSubPix on a slightly
-  blurred copy with a window sized from the squares.  ``"sb"``: findChessboardCornersSB with
-  CALIB_CB_ACCURACY and its own subpixel result (OpenCV 5.0 returns it in reverse order).  On clean
-  renders of the paper's wide-angle camera classic is about 4x more accurate (see
-  benchmarks/detection_accuracy.py); SB is kept to measure what the choice costs.
+* Checkerboard, ``"classic"`` (default): findChessboardCorners, then every corner re-measured by
+  the saddle fit below.  ``"sb"``: findChessboardCornersSB with CALIB_CB_ACCURACY and its own
+  subpixel result (OpenCV 5.0 returns it in reverse order).  On clean renders of the paper's
+  wide-angle camera classic is about 4x more accurate (see benchmarks/detection_accuracy.py); SB
+  is kept to measure what the choice costs.
 * Circle grids, ``"grid"``: findCirclesGrid (retried with CALIB_CB_CLUSTERING, which copes with
   stronger perspective) with a blob detector sized from the image and the board; the returned
   grid must be locally affine (a mis-ordered grid is rejected), and every centre is re-measured at
-  full resolution as the darkness centroid of its disc (a disc cut by the image border, whose
-  centroid would be biased, becomes a NaN row).  That is the centroid of the imaged
-  ellipse, which is not the image of the circle's centre under perspective: the bias is what
-  circle boards really cost, and it is kept, not corrected.
-* ChArUco, ``"charuco"``: cv2.aruco.CharucoDetector, then each corner re-measured with a
-  Förstner-type saddle fit restricted to the square edges, which keeps the markers out of the fit
-  (see ``_refine_charuco``).  Partial boards are allowed (unseen corners are NaN rows); fewer than
-  ``MIN_CHARUCO_CORNERS`` corners count as not found.
+  full resolution as the darkness centroid of its disc, with windows sized by the discs' diameter
+  as measured in the image (the pattern's ``diameter_mm`` is only the first guess;
+  ``measure_disc_diameter`` measures it over a set of images).  A disc cut by the image border,
+  or without paper around it inside the board's outline, whose centroid would be biased, becomes
+  a NaN row.  That is the centroid of the imaged ellipse, which is not the image of the circle's
+  centre under perspective: the bias is what circle boards really cost, and it is kept, not
+  corrected.
+* ChArUco, ``"charuco"``: cv2.aruco.CharucoDetector, then each corner re-measured by the saddle
+  fit restricted to the square edges, which keeps the markers out of it.  Partial boards are
+  allowed (unseen corners are NaN rows); fewer than ``MIN_CHARUCO_CORNERS`` corners count as not
+  found.
+
+Saddle fit (``_refine_saddles``, both corner boards).  Real boards have no white quiet zone: they
+are printed or cut to (or into) their outer squares and lie on a dark frame or in a hand.  A
+corner is measured only from image content known to be the board's: a Förstner fit over a
+window laid out on the grid (through the local board -> image map of its neighbours), short of
+the next grid line and, beside the outer squares, of where the image shows the print to end.
+On OpenCV's sample stereo images (benchmarks/real_detection.py) the opencv method's RPE is
+0.173 / 0.172 px on these corners, against 0.655 / 0.811 with cornerSubPix and a window of half a
+square, and 0.408 / 0.458 with OpenCV's own pipeline (whose 11 x 11 window is pulled on 12-13
+corners per camera too); tests/test_detect_margin.py renders the failure for all four boards.
 
 Orientation.  The 9 x 12 checkerboard is not 180-degree symmetric in colour (the square diagonally
 beyond corner 0 is black, the one beyond the last corner white), so its order is read from the
@@ -34,8 +47,8 @@ truth.
 Search and measurement.  The search runs on a copy whose longest side is at most
 ``SEARCH_MAX_SIDE`` px (findChessboardCornersSB takes > 20 s on 4096 x 3072; ChArUco's markers of a
 small image are searched on a copy enlarged to ``CHARUCO_MIN_SEARCH_SIDE``), and every point is
-then measured on the full image: cornerSubPix for checkerboard corners (SB's included when the copy
-was shrunk); for ChArUco the markers found on the copy, scaled back, go to CharucoDetector, which
+then measured on the full image: the saddle fit for checkerboard corners (SB's included when the
+copy was shrunk); for ChArUco the markers found on the copy, scaled back, go to CharucoDetector, which
 interpolates the corners on the full image before the saddle fit; circle centres are always
 re-measured at full resolution (a centroid needs only a window, which the scaled-back estimate
 places to well under a pixel).
@@ -57,13 +70,18 @@ from .rundir import write_npz
 SEARCH_MAX_SIDE = 1600
 CHARUCO_MIN_SEARCH_SIDE = 1920  # markers of small images are searched on an enlarged copy
 MIN_CHARUCO_CORNERS = 6
+CHARUCO_SIGMA = 0.8
+# The cross of edge bands holds few pixels: longer arms than the checkerboard's (0.5 square)
+# took the wide camera's mean error from 0.071 px to 0.058 (24 clean frames: 8 of them).
+CHARUCO_REACH = 0.8
+DISC_GUARD_PX = 2.0
+MAX_WINDOW_PX = 30.0  # half-extent cap of the saddle fit's window along a grid axis
 METHODS = {
     "checkerboard": ("classic", "sb"),
     "symmetric_circles": ("grid",),
     "asymmetric_circles": ("grid",),
     "charuco": ("charuco",),
 }
-_SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-6)
 
 
 @dataclass(frozen=True, eq=False)
@@ -219,6 +237,128 @@ def _nearest_mm(object_xy: np.ndarray) -> float:
     return float(np.min(np.linalg.norm(object_xy[1:] - object_xy[0], axis=1)))
 
 
+# ----------------------------------------------------------------------------- saddle points
+def _print_extent(image, q, A, axis, sign, square_mm, perp_mm, samples: int = 40) -> float:
+    """How far (board mm, up to one square) the print visibly goes on from corner ``q`` (px, in
+    ``image``'s frame) along grid axis ``axis`` (0: x, 1: y) in direction ``sign``.
+
+    Beyond an edge corner lie the two outer squares on either side of the grid line through it,
+    one black and one white as long as the print goes on.  Their grey levels are sampled (bilinear)
+    at ``perp_mm`` on either side of that line, from 0.15 square (clear of the other line's blur)
+    out to one square; the print ends where their contrast falls below half its value near the
+    corner (beyond it both samples see the same surround, or the same occluder).
+    """
+    t = np.linspace(0.15, 1.0, samples)
+    e = np.eye(2)
+    along = q + (sign * t[:, None] * square_mm * e[axis]) @ A.T
+    side = perp_mm * e[1 - axis] @ A.T
+    xy = np.concatenate([along + side, along - side]).astype(np.float32)
+    values = cv2.remap(image, xy[:, :1], xy[:, 1:], cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan).ravel()
+    contrast = np.abs(values[:samples] - values[samples:])
+    reference = np.median(contrast[t <= 0.3])
+    if not reference > 0:
+        return 0.0
+    ends = np.flatnonzero(~(contrast >= 0.5 * reference))
+    return square_mm if len(ends) == 0 else float(t[ends[0]]) * square_mm
+
+
+def _refine_saddles(gray, points: np.ndarray, object_xy: np.ndarray, square_mm: float,
+                    sigma: float, band_mm: float | None = None, reach: float = 0.5,
+                    iterations: int = 20) -> np.ndarray:
+    """Re-measure corners (N, 2) px with a saddle fit that only sees the board's own squares.
+
+    cornerSubPix (Förstner & Gülch 1987) finds the point q that every gradient g at pixels p in a
+    window is orthogonal to, least squares: (sum w g g^T) q = sum w g g^T p.  Its square window
+    of half a square reaches, at an edge corner of a sheared view, the surround beside the outer
+    squares when the print has no margin or is cut into them (OpenCV's sample stereo images:
+    3-6 corners of an end column 1.5-9 px off), or an occluder beside the board.  Here the
+    window is a parallelogram in board units, through the local board -> image map fitted to the
+    neighbouring corners (``_local_affines``): |u|, |v| within ``reach`` square of the corner, and
+    ``guard`` px (3 sigma + 2: the blur and the gradient's stencil) short of the next grid line
+    or, where there is no neighbouring corner, of where the print is seen to end
+    (``_print_extent``).  Both extents are taken symmetric (the shorter side rules), so the
+    window stays point-symmetric about q, as a saddle is; where the image border cuts it, only
+    pixels whose mirror through q is inside count.  The weights, cos^2 along u times along v,
+    fall to zero at the window's sides, so no pixel jumps in or out as q moves.  ``band_mm``
+    keeps only pixels within that distance of the two edge lines (ChArUco: the markers' borders
+    stay out).  Gradients are central differences on a copy blurred with ``sigma`` px.
+    On clean renders of the wide camera (tests/test_detect.py's views) this measured the
+    checkerboard to 0.010 px mean (cornerSubPix with the old window: 0.013) and ChArUco to
+    0.020 px (0.028) with ``reach`` 0.8 (its cross of bands holds few pixels).  A corner without a local map keeps its estimate; one whose fit fails,
+    does not converge or moves by more than a quarter square is NaN (not measured).
+    """
+    affines, _ = _local_affines(object_xy, points, 1.5 * square_mm)
+    guard = 3.0 * sigma + 2.0
+    perp_mm = band_mm if band_mm is not None else 0.3 * square_mm
+    height, width = gray.shape
+    seen = np.isfinite(affines[:, 0, 0])
+    if not seen.any():
+        return points.copy()
+    # Blur and differentiate once, over the board's image region only.
+    spread = np.abs(affines[seen]).sum(-1).max() * square_mm
+    lo = np.maximum(np.floor(points[seen].min(0) - spread) - math.ceil(4 * sigma) - 2, 0).astype(int)
+    hi = np.minimum(np.ceil(points[seen].max(0) + spread) + math.ceil(4 * sigma) + 3,
+                    [width, height]).astype(int)
+    region = cv2.GaussianBlur(gray[lo[1]:hi[1], lo[0]:hi[0]].astype(np.float32), (0, 0), sigma)
+    gy, gx = np.gradient(region.astype(np.float64))
+    refined = points.copy()
+    detected = np.isfinite(points).all(axis=1)
+    known = {tuple(np.round(xy / square_mm).astype(int)) for xy in object_xy[detected]}
+    for i in np.flatnonzero(seen):
+        A = affines[i]
+        A_inv = np.linalg.inv(A)
+        cell = tuple(np.round(object_xy[i] / square_mm).astype(int))
+        extent = np.full(2, square_mm)
+        for k in range(2):
+            for sign in (-1, 1):
+                step = np.eye(2, dtype=int)[k] * sign
+                if tuple(np.add(cell, step)) not in known:
+                    extent[k] = min(extent[k], _print_extent(region, points[i] - lo, A, k, sign,
+                                                             square_mm, perp_mm))
+        lim = np.minimum(reach * square_mm, extent - guard * np.linalg.norm(A_inv, axis=1))
+        # Windows wider than MAX_WINDOW_PX px add nothing measurable but time (large images).
+        lim = np.minimum(lim, MAX_WINDOW_PX / np.linalg.norm(A, axis=0))
+        if np.any(lim * np.linalg.norm(A, axis=0) < 1.5):
+            refined[i] = np.nan
+            continue
+        half = np.abs(A) @ lim  # px half-extents of the parallelogram's bounding box
+        q = points[i].copy()
+        ok = False
+        for _ in range(iterations):
+            x0, y0 = (math.floor(q[k] - half[k]) for k in range(2))
+            x1, y1 = (math.ceil(q[k] + half[k]) + 1 for k in range(2))
+            x0, y0 = max(x0, lo[0] + 1), max(y0, lo[1] + 1)
+            x1, y1 = min(x1, hi[0] - 1), min(y1, hi[1] - 1)
+            if x1 <= x0 or y1 <= y0:
+                break
+            ys, xs = np.mgrid[y0:y1, x0:x1]
+            offsets = np.stack([xs - q[0], ys - q[1]], -1)
+            uv = np.abs(offsets @ A_inv.T)
+            use = (uv[..., 0] <= lim[0]) & (uv[..., 1] <= lim[1])
+            # Only pixels whose mirror image through q is in the image too: a window cut by the
+            # image border stays point-symmetric, as the saddle is.
+            use &= (np.abs(offsets) <= np.minimum(q, [width - 1, height - 1] - q)).all(-1)
+            if band_mm is not None:
+                use &= uv.min(-1) < band_mm
+            g = np.stack([gx[y0 - lo[1]:y1 - lo[1], x0 - lo[0]:x1 - lo[0]][use],
+                          gy[y0 - lo[1]:y1 - lo[1], x0 - lo[0]:x1 - lo[0]][use]], -1)
+            w = np.prod(np.cos(0.5 * np.pi * uv[use] / lim) ** 2, axis=-1)
+            normal = (g * w[:, None]).T @ g
+            if np.linalg.cond(normal) > 1e6:
+                break
+            # sum w g (g . p), with p relative to q; a 4-operand einsum is 10x slower here.
+            along = w * (g * offsets[use]).sum(-1)
+            shift = np.linalg.solve(normal, along @ g)
+            q = q + shift
+            if np.linalg.norm(shift) < 1e-4:
+                ok = True
+                break
+        moved = np.linalg.norm((q - points[i]) @ A_inv.T)
+        refined[i] = q if ok and moved < 0.25 * square_mm else np.nan
+    return refined
+
+
 # ----------------------------------------------------------------------------- checkerboard
 def _detect_checkerboard(gray, search: _SearchImage, pattern: Checkerboard,
                          method: str) -> Detection:
@@ -234,33 +374,22 @@ def _detect_checkerboard(gray, search: _SearchImage, pattern: Checkerboard,
     if method == "sb":
         points = points[::-1]  # OpenCV 5.0's SB starts at the opposite corner (patterns.py)
     if method == "classic" or search.downscaled:  # SB's own subpixel result is kept at full size
-        points = _corner_subpix(gray, points, pattern.pattern_size)
+        points = _refine_saddles(gray, points, pattern.object_points()[:, :2], pattern.square_mm,
+                                 _checkerboard_sigma(points, pattern.pattern_size))
     points = _orient_checkerboard(gray, points, pattern)
     return Detection(_drop_grid_outliers(pattern.object_points()[:, :2], points,
                                          pattern.square_mm), pattern.ids(), True)
 
 
-def _corner_subpix(gray, points: np.ndarray, pattern_size: tuple[int, int]) -> np.ndarray:
-    """cornerSubPix on a blurred copy, with the largest window that cannot reach another corner.
-
-    Window: the (2w + 1)^2 square reaches sqrt(2) w along its diagonal and the nearest other
-    corner (along a row, a column or a diagonal, under any perspective) is at least ``step`` away,
-    so w = step / 2 keeps it out with a margin for blur.  Blur: cornerSubPix's gradients are biased
-    on one-pixel-sharp edges; a Gaussian (point-symmetric, so it moves no corner) of sigma 1.5 px
-    brought the mean error on the wide camera's clean renders from 0.045 px to 0.011 px.  Sigma
-    stays below a tenth of the step so the window holds the blurred edges many times over.
-    """
+def _checkerboard_sigma(points: np.ndarray, pattern_size: tuple[int, int]) -> float:
+    """Blur for the saddle fit: 1.5 px, below a tenth of the shortest grid step (row, column or
+    diagonal) in the image."""
     cols, rows = pattern_size
     grid = points.reshape(rows, cols, 2)
     steps = [grid[:, 1:] - grid[:, :-1], grid[1:] - grid[:-1],
              grid[1:, 1:] - grid[:-1, :-1], grid[1:, :-1] - grid[:-1, 1:]]
     step = min(float(np.linalg.norm(s, axis=-1).min()) for s in steps)
-    sigma = min(1.5, 0.1 * step)
-    blurred = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), sigma)
-    half = max(2, int(0.5 * step))
-    refined = cv2.cornerSubPix(blurred, points.astype(np.float32).reshape(-1, 1, 2), (half, half),
-                               (-1, -1), _SUBPIX_CRITERIA)
-    return refined.reshape(-1, 2).astype(np.float64)
+    return min(1.5, 0.1 * step)
 
 
 def _mean_around(gray, centre: np.ndarray, radius: float) -> float | None:
@@ -335,6 +464,68 @@ def _blob_detector(search: _SearchImage, pattern: SymmetricCircles | AsymmetricC
 
 
 def _detect_circles(gray, search: _SearchImage, pattern: SymmetricCircles | AsymmetricCircles):
+    found = _find_circle_grid(search, pattern)
+    if isinstance(found, str):
+        return _failed(pattern, found)
+    return Detection(_measured_discs(gray, *found, pattern)[0], pattern.ids(), True)
+
+
+def _measured_discs(gray, points: np.ndarray, affines: np.ndarray, pattern, passes: int = 4):
+    """``_measure_discs`` with windows sized by the discs as imaged: a first pass with the
+    pattern's diameter_mm, then again with this image's median measured diameter while that
+    differs from the one used by more than 1 % (at most ``passes`` in all), so a pattern whose
+    diameter is off still gets windows that hold its discs and their paper.  A window too small
+    cuts the blurred rim and under-measures, so a guess 20 % small takes three passes."""
+    used = pattern.diameter_mm
+    for _ in range(passes):
+        centres, diameters = _measure_discs(gray, points, affines, pattern, used)
+        if not np.isfinite(diameters).any():
+            break
+        measured = float(np.nanmedian(diameters))
+        if abs(measured / used - 1) <= 0.01:
+            break
+        used = measured
+    return centres, diameters
+
+
+def measure_disc_diameter(images, pattern: SymmetricCircles | AsymmetricCircles) -> float:
+    """The discs' diameter in mm, measured from images of a circle grid whose spacing is known.
+
+    ``images``: 8-bit grey (H, W) or BGR (H, W, 3) arrays; ``pattern.diameter_mm`` need only be
+    a rough guess (it sizes the first measuring window; within about -20 %/+60 % of the truth).
+    Each disc's darkness summed over its window, over the darkness of its core, is its imaged
+    area (blur moves darkness about but keeps its sum); the local board -> image map fitted to
+    the neighbouring centres (``_local_affines``) takes it to board mm^2, and the diameter of the
+    circle of that area is the disc's.  The result is the median over every disc measured in every
+    image (discs cut by the image or the print's edge are left out).  Raises ValueError if the
+    pattern is not a circle grid or no disc could be measured.
+    """
+    if not isinstance(pattern, (SymmetricCircles, AsymmetricCircles)):
+        raise ValueError(f"measure_disc_diameter: pattern must be a circle grid, got "
+                         f"{pattern.kind!r}")
+    diameters = []
+    for k, image in enumerate(images):
+        image = np.asarray(image)
+        if image.dtype != np.uint8 or image.shape[2:] not in ((), (3,)):
+            raise ValueError(f"measure_disc_diameter: image {k}: expected an 8-bit (H, W) or "
+                             f"(H, W, 3) image, got {image.dtype} {image.shape}")
+        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+        found = _find_circle_grid(_SearchImage.of(gray), pattern)
+        if not isinstance(found, str):
+            diameters.append(_measured_discs(gray, *found, pattern)[1])
+    measured = np.concatenate(diameters) if diameters else np.array([])
+    if not np.isfinite(measured).any():
+        raise ValueError(f"measure_disc_diameter: no disc of the {pattern.kind} grid could be "
+                         f"measured in the {len(diameters)} image(s) where it was found")
+    return float(np.nanmedian(measured))
+
+
+def _find_circle_grid(search: _SearchImage, pattern: SymmetricCircles | AsymmetricCircles):
+    """(points (N, 2) full-resolution px in object order, local affines) or the failure reason.
+
+    The default grid finder fails on some clean, moderately tilted views that clustering finds;
+    clustering in turn sometimes returns a scrambled order, which the affine check rejects.
+    """
     symmetric = isinstance(pattern, SymmetricCircles)
     grid = cv2.CALIB_CB_SYMMETRIC_GRID if symmetric else cv2.CALIB_CB_ASYMMETRIC_GRID
     cols, rows = pattern.pattern_size
@@ -343,8 +534,6 @@ def _detect_circles(gray, search: _SearchImage, pattern: SymmetricCircles | Asym
     blobs = _blob_detector(search, pattern)
     kind = "symmetric" if symmetric else "asymmetric"
     reason = f"findCirclesGrid found no {cols}x{rows} {kind} circle grid"
-    # The default grid finder fails on some clean, moderately tilted views that clustering finds;
-    # clustering in turn sometimes returns a scrambled order, which the affine check rejects.
     for flags in (grid, grid | cv2.CALIB_CB_CLUSTERING):
         ok, centres = cv2.findCirclesGrid(search.image, pattern.pattern_size, flags=flags,
                                           blobDetector=blobs)
@@ -359,52 +548,87 @@ def _detect_circles(gray, search: _SearchImage, pattern: SymmetricCircles | Asym
         if np.nanmax(misfit) > 0.3 * step_mm:
             reason = "findCirclesGrid returned a grid whose order is not locally affine"
             continue
-        return Detection(_disc_centroids(gray, points, affines, pattern), pattern.ids(), True)
-    return _failed(pattern, reason)
+        return points, affines
+    return reason
 
 
-def _disc_centroids(gray, points: np.ndarray, affines: np.ndarray, pattern,
-                    iterations: int = 3) -> np.ndarray:
-    """Re-measure each disc centre as the centroid of its darkness, at full resolution.
+def _measure_discs(gray, points: np.ndarray, affines: np.ndarray, pattern, diameter_mm: float,
+                   iterations: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Each disc's centre (N, 2) px, the centroid of its darkness, and diameter (N,) mm.
 
-    Through the local board -> image map (fitted to the neighbouring centres) each disc gets an
-    elliptical window in board units: the disc plus a margin for blur inside, and a ring of paper
-    out to half the distance to the nearest disc.  A plane fitted to the ring gives the local paper
-    white (absorbing shading); the weights ``white - I`` then make the centroid the area centroid of
-    the imaged disc, as exact as the image's anti-aliasing.  The window is re-centred on the new
-    estimate a few times, so the starting estimate need only be good to a fraction of the radius.
-    A disc cut by the image border has no trustworthy centroid: its row is NaN.
+    Through the local board -> image map ``A`` (fitted to the neighbouring centres) each disc
+    gets an elliptical window in board units: the disc plus a margin for blur (radius
+    1.25 ``diameter_mm`` / 2), and a ring of paper out to half the distance to the nearest disc.
+    A plane fitted to the ring gives the local paper white (absorbing shading); the weights
+    ``white - I`` then make the centroid the area centroid of the imaged disc, as exact as the
+    image's anti-aliasing.  The window is re-centred on the new estimate a few times, so the
+    starting estimate need only be good to a fraction of the radius.  Nothing beyond the board
+    enters: the ring keeps only pixels inside the pattern's outline (``outline_mm``, its
+    ``margin_mm`` included, less ``DISC_GUARD_PX``) and the disc window is cut point-symmetrically
+    about the estimate to that outline, so a window that must be cut is cut on both sides.  A disc
+    with less than its radius of paper to the outline (an outer disc of a board printed with
+    ``margin_mm=0``) or cut by the image border has no trustworthy centroid: its row is NaN.
     On 24 clean wide-camera renders per grid this measured the exact imaged-disc centroid to
-    0.002-0.003 px mean (0.013 px max); the blob detector's own centres were off it by 0.015-0.017
-    px mean (0.08 px max).
+    0.002-0.003 px mean (0.013 px max); the blob detector's own centres were off it by
+    0.015-0.017 px mean (0.08 px max).
+    Diameter: the window's summed darkness over the darkness of the disc's core (inside half
+    its radius) is the imaged disc's area in px^2 (blur moves darkness about but keeps its sum),
+    |det A^-1| takes it to board mm^2; the circle of that area has the disc's diameter.  NaN for
+    discs whose window is cut.
     """
-    r_disc = pattern.diameter_mm / 2
-    r_inner, r_outer = 1.25 * r_disc, 0.5 * _nearest_mm(pattern.object_points()[:, :2])
+    object_xy = pattern.object_points()[:, :2]
+    r_disc = diameter_mm / 2
+    r_inner, r_outer = 1.25 * r_disc, 0.5 * _nearest_mm(object_xy)
+    print_lo, print_hi = pattern.outline_mm()[0], pattern.outline_mm()[2]
     height, width = gray.shape
     refined = points.copy()
+    diameters = np.full(len(points), np.nan)
     for i, A in enumerate(affines):
         A_inv = np.linalg.inv(A)
-        reach, disc_reach = np.array([r_outer, r_inner]) * np.linalg.norm(A, 2)  # px
+        reach = r_outer * np.linalg.norm(A, 2)  # px
+        # Board mm per px across the print's sides (x = const, y = const lines).
+        guard_mm = DISC_GUARD_PX * np.linalg.norm(A_inv, axis=1)
+        room = np.minimum(object_xy[i] - print_lo, print_hi - object_xy[i]) - guard_mm
+        if np.any(room < r_disc):  # the disc's rim touches the print's edge: no paper around it
+            refined[i] = np.nan
+            continue
+        disc_reach = r_inner * np.linalg.norm(A, 2)
         for _ in range(iterations):
             cx, cy = refined[i]
             if not (disc_reach <= cx <= width - 1 - disc_reach
                     and disc_reach <= cy <= height - 1 - disc_reach):
                 refined[i] = np.nan
                 break
-            # Near the border the window is cut: the ring keeps enough paper for the plane.
             x0, x1 = max(math.floor(cx - reach), 0), min(math.ceil(cx + reach) + 1, width)
             y0, y1 = max(math.floor(cy - reach), 0), min(math.ceil(cy + reach) + 1, height)
             ys, xs = np.mgrid[y0:y1, x0:x1]
             offsets = np.stack([xs - cx, ys - cy], -1)
-            radius_mm = np.linalg.norm(offsets @ A_inv.T, axis=-1)
+            board = offsets @ A_inv.T  # mm from the disc's centre
+            radius_mm = np.linalg.norm(board, axis=-1)
             patch = gray[y0:y1, x0:x1].astype(np.float64)
-            ring = (radius_mm >= r_inner) & (radius_mm <= r_outer)
+            # Paper: the ring, inside the print; the disc window: point-symmetric about the
+            # estimate and inside both the print and the image, so what lies beyond the board
+            # or the image never enters, and what is cut is cut on both sides.
+            inside = (np.abs(board) <= room).all(-1)
+            on_print = ((object_xy[i] + board >= print_lo + guard_mm)
+                        & (object_xy[i] + board <= print_hi - guard_mm)).all(-1)
+            ring = (radius_mm >= r_inner) & (radius_mm <= r_outer) & on_print
+            disc = (radius_mm < r_inner) & inside
+            if ring.sum() < 3 or not disc.any():
+                refined[i] = np.nan
+                break
             design = np.column_stack([np.ones(ring.sum()), offsets[ring]])
             plane = np.linalg.lstsq(design, patch[ring], rcond=None)[0]
-            disc = radius_mm < r_inner
-            weight = plane[0] + offsets[disc] @ plane[1:] - patch[disc]
+            white = plane[0] + offsets @ plane[1:]
+            weight = white[disc] - patch[disc]
             refined[i] = (cx, cy) + weight @ offsets[disc] / weight.sum()
-    return refined
+        core = (radius_mm < 0.5 * r_disc) & inside
+        whole = (radius_mm < r_inner)
+        if np.isfinite(refined[i]).all() and core.any() and (whole == (whole & inside)).all():
+            contrast = np.median(white[core] - patch[core])
+            area_px = (white[whole] - patch[whole]).sum() / contrast
+            diameters[i] = 2 * math.sqrt(area_px * abs(np.linalg.det(A_inv)) / math.pi)
+    return refined, diameters
 
 
 # ----------------------------------------------------------------------------- ChArUco
@@ -436,66 +660,14 @@ def _detect_charuco(gray, search: _SearchImage, pattern: Charuco) -> Detection:
                                 f"need {MIN_CHARUCO_CORNERS}")
     points = np.full((len(pattern.ids()), 2), np.nan)
     points[ids.ravel()] = corners.reshape(-1, 2)
-    points = _refine_charuco(gray, points, side)
+    points = _refine_saddles(gray, points, side.object_points()[:, :2], side.square_mm,
+                             CHARUCO_SIGMA, band_mm=(side.square_mm - side.marker_mm) / 4,
+                             reach=CHARUCO_REACH)
     if side is not pattern:  # the back's corners in the front's order (the board frame)
         front = np.full_like(points, np.nan)
         front[pattern.back_to_front] = points
         points = front
     return Detection(points, pattern.ids(), True)
-
-
-def _refine_charuco(gray, points: np.ndarray, pattern: Charuco, sigma: float = 0.8,
-                    iterations: int = 10) -> np.ndarray:
-    """Re-measure ChArUco corners with a saddle fit on the square edges only.
-
-    cornerSubPix (Förstner & Gülch 1987) finds the point q that every gradient g at pixels p in a
-    window is orthogonal to, least squares: (sum g g^T) q = sum g g^T p.  Around a ChArUco corner a
-    square window wide enough to be precise takes in the markers' borders, 2 mm inside the white
-    squares, whose gradients pull the corner (OpenCV's detector: 0.13 px mean, 0.56 px max over
-    24 clean renders of the wide camera).  Here the same equations run over a cross: pixels within
-    ``band`` of the two edge lines through the corner (half the marker's inset, in board units via
-    the local affine map fitted to the neighbouring corners) out to 0.6 square, on a copy blurred
-    with ``sigma`` px for well-sampled gradients (0.047 px mean, 0.41 px max on the same corners,
-    which include far boards with 12 px squares; 0.028 px mean on near ones).
-    Corners with fewer than two detected non-collinear neighbours keep OpenCV's estimate, as do
-    those whose fit leaves the image or moves them by more than a band.
-    """
-    object_xy = pattern.object_points()[:, :2]
-    affines, _ = _local_affines(object_xy, points, 1.5 * pattern.square_mm)
-    band = (pattern.square_mm - pattern.marker_mm) / 4
-    reach = 0.6 * pattern.square_mm
-    margin = math.ceil(3 * sigma) + 1  # the blur and the gradient need pixels beyond the window
-    height, width = gray.shape
-    refined = points.copy()
-    for i in np.flatnonzero(np.isfinite(affines[:, 0, 0])):
-        A_inv = np.linalg.inv(affines[i])
-        half = reach * np.linalg.norm(affines[i], 2)
-        q = points[i].copy()
-        for _ in range(iterations):
-            x0, y0 = math.floor(q[0] - half) - margin, math.floor(q[1] - half) - margin
-            x1, y1 = math.ceil(q[0] + half) + margin + 1, math.ceil(q[1] + half) + margin + 1
-            if x0 < 0 or y0 < 0 or x1 > width or y1 > height:
-                q = points[i]
-                break
-            patch = cv2.GaussianBlur(gray[y0:y1, x0:x1].astype(np.float32), (0, 0), sigma)
-            gy, gx = (g[margin:-margin, margin:-margin]
-                      for g in np.gradient(patch.astype(np.float64)))
-            ys, xs = np.mgrid[y0 + margin:y1 - margin, x0 + margin:x1 - margin]
-            offsets = np.stack([xs - q[0], ys - q[1]], -1)
-            uv = np.abs(offsets @ A_inv.T)
-            cross = (uv.min(-1) < band) & (uv.max(-1) < reach)
-            g = np.stack([gx[cross], gy[cross]], -1)
-            normal = g.T @ g
-            if np.linalg.cond(normal) > 1e6:  # no edges in two directions: nothing to fit
-                q = points[i]
-                break
-            shift = np.linalg.solve(normal, np.einsum("ni,nj,nj->i", g, g, offsets[cross]))
-            q = q + shift
-            if np.linalg.norm(shift) < 1e-4:
-                break
-        moved = np.linalg.norm((q - points[i]) @ A_inv.T)
-        refined[i] = q if moved < band else points[i]
-    return refined
 
 
 # ----------------------------------------------------------------------------- datasets
