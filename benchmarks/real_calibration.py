@@ -59,9 +59,11 @@ def opencv_detections(source: ImageFolders) -> list[CameraDetections]:
 
 
 def stereo_calibrate(source, dets, cams) -> tuple[float, float, float]:
-    """cv2.stereoCalibrate with FIX_INTRINSIC on the frames both cameras found:
-    (RMS px, |T|, rotation deg)."""
+    """cv2.stereoCalibrate with FIX_INTRINSIC on the frames both cameras found in full (it
+    takes no missing point): (RMS px, |T|, rotation deg)."""
     both = dets[0].found & dets[1].found
+    for d in dets:
+        both &= np.isfinite(d.points).all(axis=(1, 2))
     obj = [source.object_points.astype(np.float32)] * int(both.sum())
     img = [[d.points[f].astype(np.float32) for f in np.flatnonzero(both)] for d in dets]
     rms, *_, R, T, _, _ = cv2.stereoCalibrate(
@@ -117,8 +119,7 @@ def main(argv=None) -> None:
         d, m, cam, rpe, ho, est = row
         print(f"{d:9s} {m:16s} {cam:6s} {rpe:7.4f} {ho:9.4f}   {est.fx:.2f} {est.fy:.2f} "
               f"{est.cx:.2f} {est.cy:.2f}")
-    print(f"\nRig (right from left; lengths in units of {args.square_mm:g} mm squares x "
-          f"square size):")
+    print(f"\nRig (right from left; |T| in mm for {args.square_mm:g} mm squares):")
     for (d, m), rig in rigs.items():
         if isinstance(rig, str):
             print(f"{d:9s} {m:16s} failed: {rig}")
