@@ -25,3 +25,27 @@ def rays():
             cache[cam.name] = PixelRays(cam)
         return cache[cam.name]
     return get
+
+
+def _opencv_pair():
+    """OpenCV's sample stereo pair (real photographs, /work/shared/real/opencv_stereo on these
+    machines): $SYNTHCAL_REAL_IMAGES, else beside the repository, else that path."""
+    from pathlib import Path
+
+    here = Path(__file__).resolve().parents[2] / "shared" / "real" / "opencv_stereo"
+    for path in (os.environ.get("SYNTHCAL_REAL_IMAGES"), here, "/work/shared/real/opencv_stereo"):
+        if path and Path(path).is_dir():
+            return Path(path)
+    return None
+
+
+OPENCV_PAIR = _opencv_pair()
+
+
+@pytest.fixture(scope="session")
+def opencv_pair():
+    """The folder of OpenCV's real sample pair; the test skips, saying why, where it is absent."""
+    if OPENCV_PAIR is None:
+        pytest.skip("OpenCV's sample stereo pair is not on this machine (set SYNTHCAL_REAL_IMAGES "
+                    "to its folder)")
+    return OPENCV_PAIR

@@ -19,7 +19,6 @@ from stereo_bench.pipeline import run
 from stereo_bench.rundir import RunPaths
 
 ROOT = Path(__file__).parent.parent
-REAL = ROOT.parent / "shared" / "real" / "opencv_stereo"
 
 
 @pytest.fixture(scope="module")
@@ -120,13 +119,13 @@ def test_board_file_reads_the_rig_files_pattern_section(tmp_path):
     assert board.square_mm == 24.5
 
 
-@pytest.mark.skipif(not REAL.is_dir(), reason=f"{REAL}: OpenCV's sample pair not present")
-def test_real_opencv_pair_through_the_command(tmp_path):
+def test_real_opencv_pair_through_the_command(tmp_path, opencv_pair):
     """OpenCV's sample stereo pair, square size 1 (lengths in squares, as OpenCV's sample):
     the rig agrees with OpenCV's calibrateMultiview on the same detections and intrinsics, and
     the baseline is OpenCV's stereo_calib's 3.345 squares within a few hundredths."""
     out = tmp_path / "real"
-    code = main(["calibrate-images", f"left={REAL}/left*.jpg", f"right={REAL}/right*.jpg",
+    code = main(["calibrate-images", f"left={opencv_pair}/left*.jpg",
+                 f"right={opencv_pair}/right*.jpg",
                  "--board", "checkerboard", "--inner-corners", "9x6", "--square-mm", "1",
                  "--methods", "opencv", "--folds", "3", "--out", str(out)])
     assert code == 0

@@ -12,7 +12,6 @@ RPE on this project's detections with OpenCV's own pipeline on OpenCV's sample s
 """
 
 import dataclasses
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -28,7 +27,6 @@ from stereo_bench.render.imaging import Optics
 import test_detect
 from test_detect import VIEWS, cam_from_board, errors_over, imaged_rims, polygon_centroids
 
-REAL = Path("/work/shared/real/opencv_stereo")
 wide = test_detect.wide  # the wide-angle camera and its pixel rays (a module-scoped fixture)
 # Tilted 40-50 degrees about axes near a diagonal: squares image as strongly sheared parallelograms.
 SHEARED = [
@@ -216,15 +214,14 @@ def opencv_rpe(pattern, views):
     return get_calibrator("opencv").calibrate(obs).log["rms_px"]
 
 
-@pytest.mark.skipif(not REAL.is_dir(), reason=f"{REAL} is not on this machine")
 @pytest.mark.parametrize("camera", ["left", "right"])
-def test_real_images_calibrate_as_well_as_with_opencvs_pipeline(camera):
+def test_real_images_calibrate_as_well_as_with_opencvs_pipeline(camera, opencv_pair):
     """OpenCV's sample stereo board (9 x 6 inner corners, almost no margin).  Measured RPE of the
     opencv method: 0.173 / 0.172 px on these detections (0.655 / 0.811 with the old refinement)
     against 0.408 / 0.458 with OpenCV's pipeline."""
     pattern = Checkerboard(squares_x=10, squares_y=7, square_mm=1.0, margin_mm=0.0)
     ours, theirs = [], []
-    for path in sorted(REAL.glob(f"{camera}*.jpg")):
+    for path in sorted(opencv_pair.glob(f"{camera}*.jpg")):
         gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         detection = detect(gray, pattern)
         assert detection.found, (path, detection.error)
