@@ -282,7 +282,8 @@ def cmd_calibrate_images(args) -> int:
                                     progress=lambda d, n: bar.update(task, completed=d, total=n),
                                     notes_in=measured)
     paths = CapturePaths(out)
-    text = capture_markdown(results, f"Calibration of {', '.join(args.cameras)}")
+    text = capture_markdown(results, f"Calibration of {', '.join(c.name for c in source.cameras)}"
+                                     f" from their images")
     write_text(paths.report, text)
     console.print(text, markup=False, soft_wrap=True, highlight=False)
     _warn(results["warnings"] + results["notes"])
