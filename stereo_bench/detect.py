@@ -76,6 +76,7 @@ CHARUCO_SIGMA = 0.8
 CHARUCO_REACH = 0.8
 DISC_GUARD_PX = 2.0
 MAX_WINDOW_PX = 30.0  # half-extent cap of the saddle fit's window along a grid axis
+_SADDLE_MARGIN = 3  # px a saddle window may move before its gradient patch is re-cut
 METHODS = {
     "checkerboard": ("classic", "sb"),
     "symmetric_circles": ("grid",),
@@ -238,22 +239,49 @@ def _nearest_mm(object_xy: np.ndarray) -> float:
 
 
 # ----------------------------------------------------------------------------- saddle points
-def _print_extent(image, q, A, axis, sign, square_mm, perp_mm, samples: int = 40) -> float:
-    """How far (board mm, up to one square) the print visibly goes on from corner ``q`` (px, in
-    ``image``'s frame) along grid axis ``axis`` (0: x, 1: y) in direction ``sign``.
+def _blurred_box(gray, x0: int, y0: int, x1: int, y1: int, sigma: float):
+    """``gray`` blurred with ``sigma`` px (float32) over the box [x0, x1) x [y0, y1) cut to the
+    image, and the cut box's top-left pixel (x, y); None if the box misses the image.
+
+    The copy blurred carries the kernel's reach of context on every side inside the image, so the
+    values are those of the whole image blurred (both reflect at the image's own border): blurring
+    a few windows costs little where the whole 4096 x 3072 frame cost more than the fit itself.
+    """
+    height, width = gray.shape
+    bx0, by0, bx1, by1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+    if bx1 <= bx0 or by1 <= by0:
+        return None
+    context = math.ceil(4 * sigma) + 1  # OpenCV's float kernel reaches round(4 sigma) px
+    sx0, sy0 = max(bx0 - context, 0), max(by0 - context, 0)
+    sx1, sy1 = min(bx1 + context, width), min(by1 + context, height)
+    blurred = cv2.GaussianBlur(gray[sy0:sy1, sx0:sx1].astype(np.float32), (0, 0), sigma)
+    return blurred[by0 - sy0:by1 - sy0, bx0 - sx0:bx1 - sx0], (bx0, by0)
+
+
+def _print_extent(gray, q, A, axis, sign, square_mm, perp_mm, sigma, samples: int = 40) -> float:
+    """How far (board mm, up to one square) the print visibly goes on from corner ``q`` (px)
+    along grid axis ``axis`` (0: x, 1: y) in direction ``sign``, seen in ``gray`` blurred with
+    ``sigma``.
 
     Beyond an edge corner lie the two outer squares on either side of the grid line through it,
     one black and one white as long as the print goes on.  Their grey levels are sampled (bilinear)
     at ``perp_mm`` on either side of that line, from 0.15 square (clear of the other line's blur)
     out to one square; the print ends where their contrast falls below half its value near the
-    corner (beyond it both samples see the same surround, or the same occluder).
+    corner (beyond it both samples see the same surround, or the same occluder).  Samples off the
+    image are NaN, which ends the print there.
     """
     t = np.linspace(0.15, 1.0, samples)
     e = np.eye(2)
     along = q + (sign * t[:, None] * square_mm * e[axis]) @ A.T
     side = perp_mm * e[1 - axis] @ A.T
-    xy = np.concatenate([along + side, along - side]).astype(np.float32)
-    values = cv2.remap(image, xy[:, :1], xy[:, 1:], cv2.INTER_LINEAR,
+    xy = np.concatenate([along + side, along - side])
+    lo, hi = np.floor(xy.min(0)).astype(int) - 1, np.ceil(xy.max(0)).astype(int) + 2
+    box = _blurred_box(gray, lo[0], lo[1], hi[0], hi[1], sigma)
+    if box is None:
+        return 0.0
+    patch, origin = box
+    xy = (xy - origin).astype(np.float32)
+    values = cv2.remap(patch, xy[:, :1], xy[:, 1:], cv2.INTER_LINEAR,
                        borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan).ravel()
     contrast = np.abs(values[:samples] - values[samples:])
     reference = np.median(contrast[t <= 0.3])
@@ -292,71 +320,129 @@ def _refine_saddles(gray, points: np.ndarray, object_xy: np.ndarray, square_mm: 
     guard = 3.0 * sigma + 2.0
     perp_mm = band_mm if band_mm is not None else 0.3 * square_mm
     height, width = gray.shape
-    seen = np.isfinite(affines[:, 0, 0])
-    if not seen.any():
-        return points.copy()
-    # Blur and differentiate once, over the board's image region only.
-    spread = np.abs(affines[seen]).sum(-1).max() * square_mm
-    lo = np.maximum(np.floor(points[seen].min(0) - spread) - math.ceil(4 * sigma) - 2, 0).astype(int)
-    hi = np.minimum(np.ceil(points[seen].max(0) + spread) + math.ceil(4 * sigma) + 3,
-                    [width, height]).astype(int)
-    region = cv2.GaussianBlur(gray[lo[1]:hi[1], lo[0]:hi[0]].astype(np.float32), (0, 0), sigma)
-    gy, gx = np.gradient(region.astype(np.float64))
     refined = points.copy()
-    detected = np.isfinite(points).all(axis=1)
-    known = {tuple(np.round(xy / square_mm).astype(int)) for xy in object_xy[detected]}
-    for i in np.flatnonzero(seen):
-        A = affines[i]
-        A_inv = np.linalg.inv(A)
-        cell = tuple(np.round(object_xy[i] / square_mm).astype(int))
-        extent = np.full(2, square_mm)
+    seen = np.flatnonzero(np.isfinite(affines[:, 0, 0]))
+    A = affines[seen]
+    A_inv = np.linalg.inv(A)
+    cells = np.round(object_xy / square_mm).astype(int)
+    known = {tuple(c) for c in cells[np.isfinite(points).all(axis=1)]}
+    extent = np.full((len(seen), 2), square_mm)
+    for m, i in enumerate(seen):
         for k in range(2):
             for sign in (-1, 1):
-                step = np.eye(2, dtype=int)[k] * sign
-                if tuple(np.add(cell, step)) not in known:
-                    extent[k] = min(extent[k], _print_extent(region, points[i] - lo, A, k, sign,
-                                                             square_mm, perp_mm))
-        lim = np.minimum(reach * square_mm, extent - guard * np.linalg.norm(A_inv, axis=1))
-        # Windows wider than MAX_WINDOW_PX px add nothing measurable but time (large images).
-        lim = np.minimum(lim, MAX_WINDOW_PX / np.linalg.norm(A, axis=0))
-        if np.any(lim * np.linalg.norm(A, axis=0) < 1.5):
-            refined[i] = np.nan
-            continue
-        half = np.abs(A) @ lim  # px half-extents of the parallelogram's bounding box
-        q = points[i].copy()
-        ok = False
-        for _ in range(iterations):
-            x0, y0 = (math.floor(q[k] - half[k]) for k in range(2))
-            x1, y1 = (math.ceil(q[k] + half[k]) + 1 for k in range(2))
-            x0, y0 = max(x0, lo[0] + 1), max(y0, lo[1] + 1)
-            x1, y1 = min(x1, hi[0] - 1), min(y1, hi[1] - 1)
-            if x1 <= x0 or y1 <= y0:
+                if tuple(cells[i] + sign * np.eye(2, dtype=int)[k]) not in known:
+                    extent[m, k] = min(extent[m, k], _print_extent(
+                        gray, points[i], A[m], k, sign, square_mm, perp_mm, sigma))
+    px_per_mm = np.linalg.norm(A, axis=1)  # (M, 2): px per board mm along u and v
+    lim = np.minimum(reach * square_mm, extent - guard * np.linalg.norm(A_inv, axis=2))
+    # Windows wider than MAX_WINDOW_PX px add nothing measurable but time (large images).
+    lim = np.minimum(lim, MAX_WINDOW_PX / px_per_mm)
+    fits = np.all(lim * px_per_mm >= 1.5, axis=1)
+    refined[seen[~fits]] = np.nan
+    seen, A_inv, lim = seen[fits], A_inv[fits], lim[fits]
+    half = np.einsum("mij,mj->mi", np.abs(A[fits]), lim)  # px half-extents of the bounding box
+    start = points[seen]
+    q, steps, ok = start.copy(), np.zeros(len(seen), int), np.zeros(len(seen), bool)
+    # All corners iterate together, on a stack of gradient patches that hold each one's window
+    # with _SADDLE_MARGIN px to spare; a corner whose window moves out gets a new patch and goes on.
+    pending = np.arange(len(seen))
+    while len(pending):
+        origin = np.floor(q[pending] - half[pending]).astype(int) - _SADDLE_MARGIN
+        size = int((np.ceil(q[pending] + half[pending]) + 1 - origin).max()) + _SADDLE_MARGIN
+        moments = _gradient_moments(gray, origin, size, sigma)
+        live = np.arange(len(pending))  # rows of the stack still iterating on it
+        moved_out = []
+        while len(live):
+            c = pending[live]
+            box_lo = np.maximum(np.floor(q[c] - half[c]), 1).astype(int)
+            box_hi = np.minimum(np.ceil(q[c] + half[c]) + 1, [width - 1, height - 1]).astype(int)
+            failed = (box_hi <= box_lo).any(1)
+            out = ~failed & ((box_lo < origin[live]) | (box_hi > origin[live] + size)).any(1)
+            moved_out.extend(c[out])
+            live, c, box_lo, box_hi = (a[~failed & ~out] for a in (live, c, box_lo, box_hi))
+            if not len(live):
                 break
-            ys, xs = np.mgrid[y0:y1, x0:x1]
-            offsets = np.stack([xs - q[0], ys - q[1]], -1)
-            uv = np.abs(offsets @ A_inv.T)
-            use = (uv[..., 0] <= lim[0]) & (uv[..., 1] <= lim[1])
-            # Only pixels whose mirror image through q is in the image too: a window cut by the
-            # image border stays point-symmetric, as the saddle is.
-            use &= (np.abs(offsets) <= np.minimum(q, [width - 1, height - 1] - q)).all(-1)
-            if band_mm is not None:
-                use &= uv.min(-1) < band_mm
-            g = np.stack([gx[y0 - lo[1]:y1 - lo[1], x0 - lo[0]:x1 - lo[0]][use],
-                          gy[y0 - lo[1]:y1 - lo[1], x0 - lo[0]:x1 - lo[0]][use]], -1)
-            w = np.prod(np.cos(0.5 * np.pi * uv[use] / lim) ** 2, axis=-1)
-            normal = (g * w[:, None]).T @ g
-            if np.linalg.cond(normal) > 1e6:
-                break
-            # sum w g (g . p), with p relative to q; a 4-operand einsum is 10x slower here.
-            along = w * (g * offsets[use]).sum(-1)
-            shift = np.linalg.solve(normal, along @ g)
-            q = q + shift
-            if np.linalg.norm(shift) < 1e-4:
-                ok = True
-                break
-        moved = np.linalg.norm((q - points[i]) @ A_inv.T)
-        refined[i] = q if ok and moved < 0.25 * square_mm else np.nan
+            shift, solvable = _saddle_steps(moments[live], origin[live], q[c], A_inv[c],
+                                            lim[c], box_lo, box_hi, band_mm, (width, height))
+            q[c[solvable]] += shift[solvable]
+            steps[c] += 1
+            ok[c[solvable]] = np.linalg.norm(shift[solvable], axis=1) < 1e-4
+            live = live[solvable & ~ok[c] & (steps[c] < iterations)]
+        pending = np.array(moved_out, dtype=int)
+    moved = np.linalg.norm(np.einsum("mij,mj->mi", A_inv, q - start), axis=1)
+    refined[seen] = np.where((ok & (moved < 0.25 * square_mm))[:, None], q, np.nan)
     return refined
+
+
+def _gradient_moments(gray, origin: np.ndarray, size: int, sigma: float) -> np.ndarray:
+    """Per pixel of the squares of ``size`` px whose top-left pixels are ``origin`` (M, 2) (x, y):
+    (M, size * size, 5) float64 [gx gx, gx gy, gy gy, gx (gx x + gy y), gy (gx x + gy y)], with
+    (gx, gy) the gradient (central differences) of ``gray`` blurred with ``sigma`` and (x, y)
+    the pixel relative to the square's top-left; zero where it would need pixels off the image.
+
+    Every sum of the saddle fit is a weighted sum of these, so an iteration is one product with
+    the weights: the gradients are computed once however often the window moves.
+    """
+    blurred = np.zeros((len(origin), size + 2, size + 2))
+    for k, (x, y) in enumerate(origin):
+        box = _blurred_box(gray, x - 1, y - 1, x + size + 1, y + size + 1, sigma)
+        if box is not None:
+            patch, (bx, by) = box
+            blurred[k, by - y + 1:by - y + 1 + patch.shape[0],
+                    bx - x + 1:bx - x + 1 + patch.shape[1]] = patch
+    gx = 0.5 * (blurred[:, 1:-1, 2:] - blurred[:, 1:-1, :-2])
+    gy = 0.5 * (blurred[:, 2:, 1:-1] - blurred[:, :-2, 1:-1])
+    xs = np.arange(size)
+    g_dot_p = gx * xs + gy * xs[:, None]
+    return np.stack([gx * gx, gx * gy, gy * gy, gx * g_dot_p, gy * g_dot_p],
+                    -1).reshape(len(origin), size * size, 5)
+
+
+def _saddle_steps(moments, origin, q, A_inv, lim, box_lo, box_hi, band_mm, image_size):
+    """One step of the saddle fit for M corners at once: shifts (M, 2) px and whether each
+    corner's normal matrix was well enough conditioned to solve (M,) bool.
+
+    ``moments`` (M, S * S, 5): ``_gradient_moments`` of squares with top-left pixels ``origin``
+    (M, 2); ``q`` (M, 2) the current estimates; ``A_inv`` (M, 2, 2) px -> board mm; ``lim``
+    (M, 2) the window's half-extents in mm; ``box_lo``, ``box_hi`` (M, 2) its bounding box (end
+    exclusive) in px.
+    """
+    size = math.isqrt(moments.shape[1])
+    width, height = image_size
+    pixels = origin[:, :, None] + np.arange(size)  # (M, 2, S): x then y coordinates
+    dx, dy = pixels[:, 0] - q[:, :1], pixels[:, 1] - q[:, 1:]  # (M, S) offsets from q
+    # Only pixels whose mirror image through q is in the image too: a window cut by the image
+    # border stays point-symmetric, as the saddle is.
+    mirrored = np.minimum(q, [width - 1, height - 1] - q)
+    in_x = ((pixels[:, 0] >= box_lo[:, :1]) & (pixels[:, 0] < box_hi[:, :1])
+            & (np.abs(dx) <= mirrored[:, :1]))
+    in_y = ((pixels[:, 1] >= box_lo[:, 1:]) & (pixels[:, 1] < box_hi[:, 1:])
+            & (np.abs(dy) <= mirrored[:, 1:]))
+    use = in_x[:, None, :] & in_y[:, :, None]  # (M, S rows of y, S columns of x)
+    # The weight's phases, pi/2 at the window's sides: theta = pi/2 (A_inv p) / lim is a sum of
+    # a term in x and one in y, so their cosines come from (M, S) cosines and sines of each.
+    scale = 0.5 * np.pi * A_inv / lim[:, :, None]
+    w = np.ones(use.shape)
+    near_edges = np.zeros(use.shape, bool)  # within band_mm of either edge line
+    for axis in range(2):
+        tx, ty = scale[:, axis, :1] * dx, scale[:, axis, 1:] * dy
+        theta = np.abs(tx[:, None, :] + ty[:, :, None])
+        use &= theta <= 0.5 * np.pi
+        if band_mm is not None:
+            near_edges |= theta < 0.5 * np.pi * band_mm / lim[:, axis, None, None]
+        w *= (np.cos(tx)[:, None, :] * np.cos(ty)[:, :, None]
+              - np.sin(tx)[:, None, :] * np.sin(ty)[:, :, None]) ** 2
+    if band_mm is not None:
+        use &= near_edges
+    w *= use
+    sums = np.matmul(w.reshape(len(q), 1, -1), moments)[:, 0]  # (M, 5)
+    normal = sums[:, [0, 1, 1, 2]].reshape(-1, 2, 2)
+    # sum w g g^T (p - q), the pixel p relative to the square's top-left.
+    rhs = sums[:, 3:] - (normal @ (q - origin)[:, :, None])[..., 0]
+    solvable = np.linalg.cond(normal) <= 1e6
+    shift = np.zeros_like(q)
+    shift[solvable] = np.linalg.solve(normal[solvable], rhs[solvable, :, None])[..., 0]
+    return shift, solvable
 
 
 # ----------------------------------------------------------------------------- checkerboard
@@ -593,6 +679,8 @@ def _measure_discs(gray, points: np.ndarray, affines: np.ndarray, pattern, diame
             refined[i] = np.nan
             continue
         disc_reach = r_inner * np.linalg.norm(A, 2)
+        # The print's edges (less the guard) in mm from the disc's centre.
+        edge_lo, edge_hi = print_lo + guard_mm - object_xy[i], print_hi - guard_mm - object_xy[i]
         for _ in range(iterations):
             cx, cy = refined[i]
             if not (disc_reach <= cx <= width - 1 - disc_reach
@@ -601,32 +689,42 @@ def _measure_discs(gray, points: np.ndarray, affines: np.ndarray, pattern, diame
                 break
             x0, x1 = max(math.floor(cx - reach), 0), min(math.ceil(cx + reach) + 1, width)
             y0, y1 = max(math.floor(cy - reach), 0), min(math.ceil(cy + reach) + 1, height)
-            ys, xs = np.mgrid[y0:y1, x0:x1]
-            offsets = np.stack([xs - cx, ys - cy], -1)
-            board = offsets @ A_inv.T  # mm from the disc's centre
-            radius_mm = np.linalg.norm(board, axis=-1)
+            # Offsets from the estimate and board mm from the disc's centre, a row of x and a
+            # column of y broadcast over the window (per-axis arithmetic: numpy reduces a
+            # trailing axis of two slowly, and the large camera's windows hold 10^4-10^5 px).
+            ox, oy = np.arange(x0, x1) - cx, (np.arange(y0, y1) - cy)[:, None]
+            bx, by = A_inv[0, 0] * ox + A_inv[0, 1] * oy, A_inv[1, 0] * ox + A_inv[1, 1] * oy
+            radius2 = bx * bx + by * by  # mm^2
             patch = gray[y0:y1, x0:x1].astype(np.float64)
             # Paper: the ring, inside the print; the disc window: point-symmetric about the
             # estimate and inside both the print and the image, so what lies beyond the board
-            # or the image never enters, and what is cut is cut on both sides.
-            inside = (np.abs(board) <= room).all(-1)
-            on_print = ((object_xy[i] + board >= print_lo + guard_mm)
-                        & (object_xy[i] + board <= print_hi - guard_mm)).all(-1)
-            ring = (radius_mm >= r_inner) & (radius_mm <= r_outer) & on_print
-            disc = (radius_mm < r_inner) & inside
-            if ring.sum() < 3 or not disc.any():
+            # or the image never enters, and what is cut is cut on both sides.  (A window whose
+            # box lies inside either limit, as most do, needs no per-pixel test.)
+            box_mm = np.abs(A_inv) @ [max(-ox[0], ox[-1]), max(-oy[0, 0], oy[-1, 0])]
+            inside = (np.bool_(True) if np.all(box_mm <= room)
+                      else (np.abs(bx) <= room[0]) & (np.abs(by) <= room[1]))
+            on_print = (np.bool_(True) if np.all((edge_lo <= -box_mm) & (box_mm <= edge_hi))
+                        else ((bx >= edge_lo[0]) & (bx <= edge_hi[0])
+                              & (by >= edge_lo[1]) & (by <= edge_hi[1])))
+            ring = (radius2 >= r_inner**2) & (radius2 <= r_outer**2) & on_print
+            disc = (radius2 < r_inner**2) & inside
+            if np.count_nonzero(ring) < 3 or not disc.any():
                 refined[i] = np.nan
                 break
-            design = np.column_stack([np.ones(ring.sum()), offsets[ring]])
-            plane = np.linalg.lstsq(design, patch[ring], rcond=None)[0]
-            white = plane[0] + offsets @ plane[1:]
-            weight = white[disc] - patch[disc]
-            refined[i] = (cx, cy) + weight @ offsets[disc] / weight.sum()
-        core = (radius_mm < 0.5 * r_disc) & inside
-        whole = (radius_mm < r_inner)
-        if np.isfinite(refined[i]).all() and core.any() and (whole == (whole & inside)).all():
-            contrast = np.median(white[core] - patch[core])
-            area_px = (white[whole] - patch[whole]).sum() / contrast
+            # White plane over the ring, least squares through its normal equations.
+            ring_y, ring_x = np.nonzero(ring)
+            design = np.column_stack([np.ones(len(ring_x)), ox[ring_x], oy[ring_y, 0]])
+            plane = np.linalg.lstsq(design.T @ design, design.T @ patch[ring], rcond=None)[0]
+            white = plane[0] + plane[1] * ox + plane[2] * oy
+            weight = white - patch
+            disc_y, disc_x = np.nonzero(disc)
+            w = weight[disc]
+            refined[i] = (cx + w @ ox[disc_x] / w.sum(), cy + w @ oy[disc_y, 0] / w.sum())
+        core = (radius2 < (0.5 * r_disc) ** 2) & inside
+        whole = radius2 < r_inner**2
+        if np.isfinite(refined[i]).all() and core.any() and not (whole & ~inside).any():
+            contrast = np.median(weight[core])
+            area_px = weight[whole].sum() / contrast
             diameters[i] = 2 * math.sqrt(area_px * abs(np.linalg.det(A_inv)) / math.pi)
     return refined, diameters
 
