@@ -1,28 +1,49 @@
-"""Time every calibration method, and cv2.calibrateCamera itself, on the same 127 views.
+"""Time every calibration method beside cv2.calibrateCamera, on the same 127 views, in one run.
 
 The views are the paper's: its rectilinear camera (configs/paper/rectilinear_mono.yaml), the
 8 x 11 inner corners of the 9 x 12 checkerboard on the conical-spring trajectory, exact projections
-plus Gaussian noise of 0.3 px. Prints wall-clock times (best of ``--repeat``) next to the OpenCV
-version they ran on (TRAPS.md: OpenCV's speed depends on its build), and the accuracy reached.
+plus Gaussian noise of 0.3 px.
+
+Each method's peer is cv2.calibrateCamera freeing the same distortion coefficients (the method's
+lens model; k1 alone for Tsai's one-coefficient model; k1 k2 for Zhang's, which also fits a skew
+OpenCV cannot), called as users call it: float32 points, default criteria, no initial guess.
+The two are timed alternately, best of ``--repeat`` each, so that a load on the machine weighs
+on both; the ratios are the method's time over its peer's, in wall-clock and in CPU time. One BLAS thread (set before numpy
+loads) and one OpenCV thread for both, and the versions they ran on (TRAPS.md: OpenCV's speed
+depends on its build). Then the accuracy reached: RPE_RMS and the projection difference against
+the true camera (mean px, and after compensating a rotation). Figures, not a pass/fail test.
 
     python benchmarks/calibration_speed.py [--repeat 3] [--sigma 0.3] [--seed 0]
+                                           [--methods zhang bouguet-brown ...]
 """
 
 from __future__ import annotations
 
-import argparse
-import time
-from pathlib import Path
+import os
 
-import cv2
-import numpy as np
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
-from stereo_bench.calibrate import Observations, available_methods, get_calibrator
-from stereo_bench.config import load_rig
-from stereo_bench.metrics import projection_difference
-from stereo_bench.rig import Rig
+import argparse  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+import scipy  # noqa: E402
+
+from stereo_bench.calibrate import (Observations, available_methods, check_methods,  # noqa: E402
+                                    get_calibrator, parse_method)
+from stereo_bench.calibrate.lens_models import LENS_MODELS, free_coefficients  # noqa: E402
+from stereo_bench.calibrate.opencv_ref import calibrate_camera_flags  # noqa: E402
+from stereo_bench.config import load_rig  # noqa: E402
+from stereo_bench.metrics import projection_difference  # noqa: E402
+from stereo_bench.rig import Rig  # noqa: E402
 
 CONFIG = Path(__file__).resolve().parent.parent / "configs" / "paper" / "rectilinear_mono.yaml"
+# The distortion each base fits without a lens model, for its cv2.calibrateCamera peer.
+OWN_DISTORTION = {"zhang": ("k1", "k2"), "bouguet": ("k1", "k2", "p1", "p2"), "tsai": ("k1",),
+                  "opencv": free_coefficients("brown")}
 
 
 def paper_observations(sigma: float, seed: int):
@@ -38,13 +59,29 @@ def paper_observations(sigma: float, seed: int):
     return obs, camera.with_params(rvec=np.zeros(3), tvec=np.zeros(3))
 
 
-def best_time(fn, repeat: int):
-    times, out = [], None
+def default_methods() -> list[str]:
+    """The listed methods, then every BASE-MODEL variant of the project's own algorithms."""
+    own = [b for b in ("zhang", "bouguet") if b in available_methods()]
+    return available_methods() + [f"{b}-{m}" for b in own for m in LENS_MODELS]
+
+
+def peer_distortion(name: str) -> tuple[str, ...]:
+    base, model = parse_method(name)
+    return OWN_DISTORTION[base] if model is None else free_coefficients(model)
+
+
+def time_side_by_side(method, peer, repeat: int):
+    """Best wall and best CPU (process) times of ``method`` and of ``peer``, (2,) each, run
+    alternately; their last results. Both run on one thread, so on a machine shared with other
+    work the CPU time is the steadier figure."""
+    wall, cpu, out = np.full(2, np.inf), np.full(2, np.inf), [None, None]
     for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return min(times), out
+        for i, fn in enumerate((method, peer)):
+            t0, c0 = time.perf_counter(), time.process_time()
+            out[i] = fn()
+            wall[i] = min(wall[i], time.perf_counter() - t0)
+            cpu[i] = min(cpu[i], time.process_time() - c0)
+    return wall, cpu, out
 
 
 def main() -> None:
@@ -52,31 +89,54 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--sigma", type=float, default=0.3)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--methods", nargs="+", default=None,
+                    help="method names (default: the listed methods and the BASE-MODEL "
+                         "variants of zhang and bouguet)")
     args = ap.parse_args()
+    methods = args.methods or default_methods()
+    check_methods(methods)
+    cv2.setNumThreads(1)  # TRAPS.md: the thread count changes OpenCV's results (and its time)
 
     obs, truth = paper_observations(args.sigma, args.seed)
-    print(f"OpenCV {cv2.__version__}, numpy {np.__version__}; {obs.n_views} views x "
-          f"{obs.n_points // obs.n_views} corners of camera {truth.name!r} "
-          f"({truth.width}x{truth.height}), noise {args.sigma} px")
-    print(f"{'method':<28}{'time s':>9}{'RPE_RMS px':>12}{'proj. diff mean px':>20}"
-          f"{'rot.-compensated':>18}")
-
     obj = [o.astype(np.float32) for o in obs.object_points]
     img = [p.astype(np.float32) for p in obs.image_points]
-    t, (rms, *_) = best_time(lambda: cv2.calibrateCamera(obj, img, obs.image_size, None, None),
-                             args.repeat)
-    print(f"{'cv2.calibrateCamera (raw)':<28}{t:>9.3f}{rms:>12.4f}{'':>20}")
+    print(f"OpenCV {cv2.__version__}, numpy {np.__version__}, scipy {scipy.__version__}; BLAS "
+          f"threads {os.environ['OPENBLAS_NUM_THREADS']}, OpenCV threads "
+          f"{cv2.getNumThreads()}; {obs.n_views} views x {obs.n_points // obs.n_views} corners "
+          f"of camera {truth.name!r} ({truth.width}x{truth.height}), noise {args.sigma} px; "
+          f"best of {args.repeat}, method and peer run alternately")
+    print(f"{'method':<20}{'cv2 peer frees':<26}{'time s':>8}{'cv2 s':>8}{'ratio':>7}"
+          f"{'CPU ratio':>10}{'RPE_RMS px':>12}{'cv2 RPE':>9}{'proj. diff px':>15}{'cv2':>8}{'rot.-comp.':>12}"
+          f"{'cv2':>8}")
 
-    for name in available_methods():
+    ratios = {}
+    for name in methods:
+        dist = peer_distortion(name)
+        flags = calibrate_camera_flags(dist)
+        # calibrateCamera's outputs; the camera built as opencv_ref builds it, for the metric
+        peer = lambda: cv2.calibrateCamera(obj, img, obs.image_size, None, None, flags=flags)
         try:
             calibrator = get_calibrator(name)
-            t, result = best_time(lambda: calibrator.calibrate(obs), args.repeat)
+            (t, t_cv), cpu, (result, (rms_cv, K, d_cv, *_)) = time_side_by_side(
+                lambda: calibrator.calibrate(obs), peer, args.repeat)
         except Exception as e:  # a method failing to import or run is reported, not fatal
-            print(f"{name:<28}  failed: {type(e).__name__}: {e}")
+            print(f"{name:<20}  failed: {type(e).__name__}: {e}")
             continue
-        diff = projection_difference(result.camera, truth)
-        print(f"{name:<28}{t:>9.3f}{result.log['rms_px']:>12.4f}{diff['mean_px']:>20.4f}"
-              f"{diff['rotation_compensated_mean_px']:>18.4f}")
+        ratios[name] = t / t_cv, cpu[0] / cpu[1]
+        ours = projection_difference(result.camera, truth)
+        cam_cv = result.camera.from_K(truth.name, truth.width, truth.height, K,
+                                      np.ravel(d_cv)[:8])
+        theirs = projection_difference(cam_cv, truth)
+        print(f"{name:<20}{' '.join(dist):<26}{t:>8.3f}{t_cv:>8.3f}{t / t_cv:>7.2f}"
+              f"{cpu[0] / cpu[1]:>10.2f}{result.log['rms_px']:>12.4f}{rms_cv:>9.4f}{ours['mean_px']:>15.4f}"
+              f"{theirs['mean_px']:>8.4f}{ours['rotation_compensated_mean_px']:>12.4f}"
+              f"{theirs['rotation_compensated_mean_px']:>8.4f}")
+    for i, kind in enumerate(("wall", "CPU")):
+        if ratios:
+            worst = max(ratios, key=lambda n: ratios[n][i])
+            print(f"{kind} time over cv2.calibrateCamera's: median "
+                  f"{np.median([r[i] for r in ratios.values()]):.2f}, largest "
+                  f"{ratios[worst][i]:.2f} ({worst})")
 
 
 if __name__ == "__main__":

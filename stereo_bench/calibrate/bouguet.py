@@ -35,7 +35,7 @@ import numpy as np
 
 from ..camera import matrix_to_rodrigues, undistort_normalized
 from .base import CalibrationResult, Observations
-from .homography import fit_homography
+from .homography import fit_homographies
 from .lens_models import LENS_MODELS, free_coefficients, method_name
 from .refine import OpenCVModel, free_mask, refine
 
@@ -63,18 +63,19 @@ def init_focal(Hs: list[np.ndarray], cc: np.ndarray, two_focals: bool = False) -
     return np.sqrt(np.abs(1.0 / inv_f2))
 
 
-def extrinsic_init(camera, board_xy: np.ndarray, image_xy: np.ndarray):
-    """cam_from_board (rvec, tvec) from the homography to normalized coordinates
-    (compute_extrinsic_init)."""
-    distorted = camera.pixels_to_distorted_normalized(image_xy)
+def extrinsic_init(camera, board_xy: list[np.ndarray], image_xy: list[np.ndarray]):
+    """cam_from_board rvecs, tvecs (V, 3) of V views (board (N_i, 2) and pixels (N_i, 2) each)
+    from their homographies to normalized coordinates (compute_extrinsic_init)."""
+    distorted = camera.pixels_to_distorted_normalized(np.concatenate(image_xy))
     normalized = undistort_normalized(distorted, camera.dist)[0]
-    H = fit_homography(board_xy, normalized)
-    H = H / np.mean(np.linalg.norm(H[:, :2], axis=0))  # H[2, 2] > 0 keeps the board in front
-    u1 = H[:, 0] / np.linalg.norm(H[:, 0])
-    u2 = H[:, 1] - (u1 @ H[:, 1]) * u1
-    u2 /= np.linalg.norm(u2)
-    R = np.column_stack([u1, u2, np.cross(u1, u2)])
-    return matrix_to_rodrigues(R), H[:, 2]
+    H = fit_homographies(board_xy, np.split(normalized, np.cumsum([len(p) for p in image_xy])[:-1]))
+    # H[2, 2] > 0 keeps the board in front
+    H = H / np.mean(np.linalg.norm(H[:, :, :2], axis=1), axis=1)[:, None, None]
+    u1 = H[:, :, 0] / np.linalg.norm(H[:, :, 0], axis=1, keepdims=True)
+    u2 = H[:, :, 1] - np.sum(u1 * H[:, :, 1], axis=1, keepdims=True) * u1
+    u2 /= np.linalg.norm(u2, axis=1, keepdims=True)
+    R = np.stack([u1, u2, np.cross(u1, u2)], -1)
+    return matrix_to_rodrigues(R), H[:, :, 2]
 
 
 class BouguetCalibrator:
@@ -116,18 +117,17 @@ class BouguetCalibrator:
     def _extrinsics(self, params, obs: Observations):
         """Every view's pose afresh: compute_extrinsic_init, then compute_extrinsic_refine."""
         camera = self.model.camera(params, obs.camera_name, obs.image_size)
-        poses = [extrinsic_init(camera, o[:, :2], p)
-                 for o, p in zip(obs.object_points, obs.image_points)]
+        rvecs, tvecs = extrinsic_init(camera, [o[:, :2] for o in obs.object_points],
+                                      obs.image_points)
         # The toolbox's compute_extrinsic_refine: 20 iterations at most, relative change 1e-10.
         return refine(self.model, params, np.zeros(len(params), bool), obs.object_points,
-                      obs.image_points, np.array([p[0] for p in poses]),
-                      np.array([p[1] for p in poses]), max_iter=20, xtol=1e-10, ftol=1e-10)
+                      obs.image_points, rvecs, tvecs, max_iter=20, xtol=1e-10, ftol=1e-10)
 
     def calibrate(self, obs: Observations) -> CalibrationResult:
         t0 = time.perf_counter()
         w, h = obs.image_size
         cc = np.array([w / 2 - 0.5, h / 2 - 0.5])  # the toolbox's ((nx-1)/2, (ny-1)/2), 0-based
-        Hs = [fit_homography(o[:, :2], p) for o, p in zip(obs.object_points, obs.image_points)]
+        Hs = fit_homographies([o[:, :2] for o in obs.object_points], obs.image_points)
         fc = init_focal(Hs, cc, self.two_focals_init)
         params = np.concatenate([fc, cc, np.zeros(9)])
         poses = self._extrinsics(params, obs)

@@ -15,7 +15,18 @@ variance gives the parameter standard deviations, and its (scale-normalized) spe
 parameters the data cannot identify (e.g. the rational k1..k6 of TRAPS.md).
 
 A model supplies only d uv / d params and d uv / d points_cam; the pose Jacobians follow by the
-chain rule through ``camera.rotate_jacobian``.
+chain rule. The iterations step each rotation on the left, R <- exp([w]x) R (the local
+parametrization of Ceres' and COLMAP's rotation manifolds), whose Jacobian d(R p)/dw = -[R p]x
+is one batched product for all views, where the Jacobian in rvec (``camera.rotate_jacobian``)
+takes one call per view. Both describe the same cost over the same poses, so the minimum, and
+the Schur complement on the intrinsics (invariant under an invertible change of each pose's
+parameters), are the same; :func:`linearize` and :func:`intrinsic_information` give rvec
+Jacobians, as their callers expect.
+
+An iteration costs one Jacobian, the per-view blocks of the normal equations as batched
+(V, 6, 6) products, and per trial step one projection without Jacobians. At the cost's floor a
+rejected step whose predicted decrease rounding could not resolve ends the iterations, instead
+of ~30 more trials raising the damping to its limit (benchmarks/calibration_speed.py times it).
 """
 
 from __future__ import annotations
@@ -25,17 +36,20 @@ from typing import Protocol
 
 import numpy as np
 
-from ..camera import (DIST_NAMES, INTRINSIC_NAMES, Camera, project_with_jacobians,
-                      rodrigues_to_matrix, rotate_jacobian)
+from ..camera import (DIST_NAMES, INTRINSIC_NAMES, Camera, matrix_to_rodrigues,
+                      project_with_jacobians, rodrigues_to_matrix, rotate_jacobian)
+
+
+EPS = np.finfo(np.float64).eps
 
 
 class ProjectionModel(Protocol):
     param_names: tuple[str, ...]
 
-    def project(self, params: np.ndarray, points_cam: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def project(self, params: np.ndarray, points_cam: np.ndarray, jacobians: bool = True
+                ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
         """points in the camera frame (N,3) -> uv (N,2), d uv/d params (N,2,P),
-        d uv/d points_cam (N,2,3)"""
+        d uv/d points_cam (N,2,3); both Jacobians None when ``jacobians`` is False"""
         ...
 
 
@@ -45,8 +59,11 @@ class OpenCVModel:
     param_names = INTRINSIC_NAMES + DIST_NAMES
     _zero = np.zeros(3)
 
-    def project(self, params, points_cam):
-        uv, J = project_with_jacobians(points_cam, params[:5], params[5:], self._zero, self._zero)
+    def project(self, params, points_cam, jacobians=True):
+        uv, J = project_with_jacobians(points_cam, params[:5], params[5:], self._zero, self._zero,
+                                       jacobians=jacobians)
+        if not jacobians:
+            return uv, None, None
         return uv, np.concatenate([J["intrinsics"], J["dist"]], -1), J["point"]
 
     @staticmethod
@@ -115,14 +132,34 @@ class _Problem:
         self.free = np.asarray(free, dtype=bool)
         self.points = np.concatenate(object_points)
         self.observed = np.concatenate(image_points)
+        self.magnitude = np.abs(self.observed).ravel() + 1.0  # (2N,) for refine's resolution
         counts = np.array([len(p) for p in object_points])
         self.view = np.repeat(np.arange(len(counts)), counts)
         self.bounds = list(zip(np.cumsum(counts) - counts, np.cumsum(counts)))
+        # Per-view products are batched over the points of each view laid out as (V, n_max);
+        # slots past a view's count take a zero row (index N) and are dropped after. Views of
+        # one board all have its count, and then the layout is a plain reshape.
+        n_max = int(counts.max())
+        slots = np.arange(n_max)
+        self.padding = (None if np.all(counts == n_max) else
+                        np.where(slots < counts[:, None], (np.cumsum(counts) - counts)[:, None]
+                                 + slots, len(self.points)))
+        self.layout = (len(counts), 2 * n_max)
+        self.board = (self.points if self.padding is None else
+                      np.concatenate([self.points, np.zeros((1, 3))])[self.padding]
+                      ).reshape(len(counts), n_max, 3)
+
+    def _points_cam(self, rvecs, tvecs):
+        """Each point in its view's camera frame (N, 3), through one (n_max, 3) x (3, 3)
+        product per view instead of a gathered (N, 3, 3) rotation per point."""
+        Pc = self.board @ rodrigues_to_matrix(rvecs).transpose(0, 2, 1) + tvecs[:, None, :]
+        return Pc.reshape(-1, 3) if self.padding is None else Pc[self.padding < len(self.points)]
 
     def residuals(self, params, rvecs, tvecs, jacobians=False):
-        R = rodrigues_to_matrix(rvecs)[self.view]
-        points_cam = (R @ self.points[:, :, None])[:, :, 0] + tvecs[self.view]
-        uv, J_params, J_point = self.model.project(params, points_cam)
+        """r (N, 2) = projected - observed; with ``jacobians`` also d r / d free params
+        (N, 2, F) and d r / d each point's own view's [rvec, tvec] (N, 2, 6)."""
+        uv, J_params, J_point = self.model.project(params, self._points_cam(rvecs, tvecs),
+                                                   jacobians=jacobians)
         r = uv - self.observed
         if not jacobians:
             return r
@@ -131,31 +168,48 @@ class _Problem:
         J_pose = np.concatenate([J_point @ J_rot, J_point], -1)  # (N,2,6) over [rvec, tvec]
         return r, J_params[:, :, self.free], J_pose
 
+    def local_residuals(self, params, rvecs, tvecs):
+        """r and its Jacobians as :meth:`residuals` gives them, the rotation part over the left
+        increment w of R <- exp([w]x) R (module docstring): d(R p)/dw = -[R p]x, and a row j of
+        d uv / d points_cam times -[q]x is the cross product q x j."""
+        Pc = self._points_cam(rvecs, tvecs)
+        uv, J_params, J_point = self.model.project(params, Pc)
+        J_rot = np.cross((Pc - tvecs[self.view])[:, None, :], J_point)
+        return (uv - self.observed, J_params[:, :, self.free],
+                np.concatenate([J_rot, J_point], -1))
+
+    def _per_view(self, J):
+        """(N, 2, k) -> (V, 2 n_max, k), each view's rows together (zero rows past its end)."""
+        if self.padding is not None:
+            J = np.concatenate([J, np.zeros((1,) + J.shape[1:])])[self.padding]
+        return J.reshape(self.layout + J.shape[-1:])
+
     def normal_equations(self, r, Ja, Jb):
         """Blocks of J^T J and J^T r: U (F,F), V (V,6,6), W (V,F,6), ga (F,), gb (V,6)."""
-        Ja, Jb, r = Ja.reshape(r.size, Ja.shape[-1]), Jb.reshape(r.size, 6), r.reshape(-1)
-        blocks = [(Jb[2 * a:2 * b].T @ Jb[2 * a:2 * b], Ja[2 * a:2 * b].T @ Jb[2 * a:2 * b],
-                   Jb[2 * a:2 * b].T @ r[2 * a:2 * b]) for a, b in self.bounds]
-        V, W, gb = (np.array(x) for x in zip(*blocks))
-        return Ja.T @ Ja, V, W, Ja.T @ r, gb
+        Jbv = self._per_view(Jb)
+        JbT = Jbv.transpose(0, 2, 1)
+        Jav, rv = self._per_view(Ja), self._per_view(r[:, :, None])
+        Ja, r = Ja.reshape(r.size, Ja.shape[-1]), r.reshape(-1)
+        return (Ja.T @ Ja, JbT @ Jbv, Jav.transpose(0, 2, 1) @ Jbv, Ja.T @ r,
+                (JbT @ rv)[:, :, 0])
 
 
 def _schur(U, V, W):
     """U - sum_v W_v V_v^-1 W_v^T and the pieces to back-substitute the poses."""
     V_inv = np.linalg.inv(V)
     WV = W @ V_inv
-    return U - np.einsum("vij,vkj->ik", WV, W), V_inv, WV
+    shape = (len(U), 6 * len(W))  # the sum over views and pose coordinates as one product
+    return (U - WV.transpose(1, 0, 2).reshape(shape) @ W.transpose(1, 0, 2).reshape(shape).T,
+            V_inv, WV)
 
 
 def _solve_damped(U, V, W, ga, gb, lam):
     """Solve (J^T J + lam diag(J^T J)) delta = -J^T r for (delta_intrinsics, delta_poses)."""
-    eye6 = np.eye(6)
     Ud = U + lam * np.diag(np.diag(U))
-    Vd = V + lam * np.diagonal(V, axis1=1, axis2=2)[:, :, None] * eye6
+    Vd = V + lam * np.diagonal(V, axis1=1, axis2=2)[:, :, None] * np.eye(6)
     S, V_inv, WV = _schur(Ud, Vd, W)
-    rhs = -ga + np.einsum("vij,vj->i", WV, gb)
-    da = np.linalg.solve(S, rhs)
-    db = -np.einsum("vij,vj->vi", V_inv, gb + np.einsum("vji,j->vi", W, da))
+    da = np.linalg.solve(S, -ga + WV.transpose(1, 0, 2).reshape(len(U), gb.size) @ gb.ravel())
+    db = -(V_inv @ (gb + da @ W)[:, :, None])[:, :, 0]
     return da, db
 
 
@@ -200,8 +254,9 @@ def intrinsic_information(model: ProjectionModel, params, free, object_points, r
     Only the geometry matters: the residuals are evaluated against the model's own projections.
     """
     problem = _Problem(model, free, object_points, [np.zeros((len(p), 2)) for p in object_points])
-    r, Ja, Jb = problem.residuals(np.asarray(params, float), np.asarray(rvecs, float),
-                                  np.asarray(tvecs, float), jacobians=True)
+    # The Schur complement does not depend on the poses' parametrization: the batched one.
+    r, Ja, Jb = problem.local_residuals(np.asarray(params, float), np.asarray(rvecs, float),
+                                        np.asarray(tvecs, float))
     U, V, W, _, _ = problem.normal_equations(r, Ja, Jb)
     return _schur(U, V, W)[0]
 
@@ -239,7 +294,8 @@ def refine(model: ProjectionModel, params0, free, object_points, image_points, r
     params0 (P,), free (P,) bool, object_points / image_points per view, rvecs0 / tvecs0 (V, 3)
     cam_from_board. Stops when a step changes the cost by less than ``ftol`` relative or the
     parameters by less than ``xtol`` relative (in Marquardt's scaling), when no damping gives a
-    decrease (the cost is at its floating-point floor), or after ``max_iter`` Jacobians.
+    decrease, or the linear model predicts none by more than ``ftol`` relative or than rounding
+    resolves (the cost is at its floating-point floor), or after ``max_iter`` Jacobians.
     """
     problem = _Problem(model, free, object_points, image_points)
     x = np.array(params0, dtype=np.float64)
@@ -251,7 +307,8 @@ def refine(model: ProjectionModel, params0, free, object_points, image_points, r
         raise ValueError(f"rvecs0 and tvecs0 must be ({len(object_points)}, 3), "
                          f"got {rv.shape} and {tv.shape}")
 
-    r, Ja, Jb = problem.residuals(x, rv, tv, jacobians=True)
+    r, Ja, Jb = problem.local_residuals(x, rv, tv)
+    normal = problem.normal_equations(r, Ja, Jb)
     cost = cost0 = 0.5 * float(np.sum(r * r))
     lam, iterations, reason = 1e-3, 0, "max_iter"
     while iterations < max_iter:
@@ -259,28 +316,44 @@ def refine(model: ProjectionModel, params0, free, object_points, image_points, r
             reason = "zero cost"
             break
         iterations += 1
-        U, V, W, ga, gb = problem.normal_equations(r, Ja, Jb)
-        while lam <= 1e16:  # raise the damping until a step decreases the cost (NaN does not)
+        U, V, W, ga, gb = normal
+        D = np.concatenate([np.diag(U), np.diagonal(V, axis1=1, axis2=2).ravel()])
+        g = np.concatenate([ga, gb.ravel()])
+        R = rodrigues_to_matrix(rv)
+        # What rounding leaves unresolved in a cost change: each residual carries ~eps times the
+        # pixel coordinate it is the difference of, independently (on exact data this is all
+        # that is left of the cost).
+        resolution = max(ftol * cost, EPS * float(np.linalg.norm(r.ravel() * problem.magnitude)))
+        while True:  # raise the damping until a step decreases the cost (NaN does not)
             da, db = _solve_damped(U, V, W, ga, gb, lam)
+            delta = np.concatenate([da, db.ravel()])
             x_new = x.copy()
             x_new[problem.free] += da
-            rv_new, tv_new = rv + db[:, :3], tv + db[:, 3:]
+            rv_new = matrix_to_rodrigues(rodrigues_to_matrix(db[:, :3]) @ R)
+            tv_new = tv + db[:, 3:]
             r_new = problem.residuals(x_new, rv_new, tv_new)
             cost_new = 0.5 * float(np.sum(r_new * r_new))
             if cost_new < cost:
                 break
+            # The decrease the linear model predicts, 0.5 (lam delta^T D delta - g^T delta),
+            # only shrinks as the damping grows: once it is below ftol relative or below what
+            # rounding resolves, no further damping can give a decrease that counts.
+            if not 0.5 * (lam * delta @ (D * delta) - g @ delta) > resolution or lam >= 1e16:
+                reason = "no decrease (cost at its floor)"
+                break
             lam *= 10.0
-        else:
-            reason = "no decrease (cost at its floor)"
+        if not cost_new < cost:
             break
-        # Marquardt's scaling sqrt(diag(J^T J)) makes the step test unit-free (MINPACK's xtol).
-        scale = np.sqrt(np.concatenate([np.diag(U), np.diagonal(V, axis1=1, axis2=2).ravel()]))
-        step = np.linalg.norm(scale * np.concatenate([da, db.ravel()]))
+        # Marquardt's scaling sqrt(diag(J^T J)) makes the step test unit-free (MINPACK's xtol);
+        # a left increment w and the rvec change it makes have comparable sizes (equal near 0).
+        scale = np.sqrt(D)
+        step = np.linalg.norm(scale * delta)
         size = np.linalg.norm(scale * np.concatenate([x[problem.free], rv.ravel(), tv.ravel()]))
         decrease = cost - cost_new
         x, rv, tv, cost = x_new, rv_new, tv_new, cost_new
         lam = max(lam / 10.0, 1e-15)
-        r, Ja, Jb = problem.residuals(x, rv, tv, jacobians=True)
+        r, Ja, Jb = problem.local_residuals(x, rv, tv)
+        normal = problem.normal_equations(r, Ja, Jb)
         if decrease <= ftol * (cost + decrease):
             reason = "ftol"
             break
@@ -288,7 +361,8 @@ def refine(model: ProjectionModel, params0, free, object_points, image_points, r
             reason = "xtol"
             break
 
-    U, V, W, _, _ = problem.normal_equations(r, Ja, Jb)
+    # The Schur complement on the intrinsics does not depend on how the poses are parametrized.
+    U, V, W = normal[:3]
     S = _schur(U, V, W)[0]
     names = [n for n, f in zip(model.param_names, problem.free) if f]
     info = rank_info(S, names, rcond)

@@ -109,8 +109,9 @@ class TsaiModel:
     def __init__(self, strict: bool = True):
         self.strict = strict
 
-    def project(self, params: np.ndarray, points_cam: np.ndarray):
-        """points_cam (N, 3) -> uv (N, 2), d uv / d params (N, 2, 5), d uv / d points (N, 2, 3)."""
+    def project(self, params: np.ndarray, points_cam: np.ndarray, jacobians: bool = True):
+        """points_cam (N, 3) -> uv (N, 2), d uv / d params (N, 2, 5), d uv / d points (N, 2, 3);
+        both Jacobians None when ``jacobians`` is False."""
         f, sx, cx, cy, k = np.asarray(params, dtype=np.float64)
         P = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
         z = P[:, 2]
@@ -120,6 +121,8 @@ class TsaiModel:
         pd = rho[:, None] * pu                             # (Xd, Yd)
         S = np.array([sx, 1.0])
         uv = pd * S + np.array([cx, cy])
+        if not jacobians:
+            return uv, None, None
 
         # d(Xd, Yd) / d(Xu, Yu) = rho I + 2 rho_q pu pu^T
         Jd = (rho[:, None, None] * np.eye(2)

@@ -24,21 +24,22 @@ import time
 
 import numpy as np
 
-from ..camera import Camera, matrix_to_rodrigues, nearest_rotation
+from ..camera import (Camera, matrix_to_rodrigues, nearest_rotation, project_points,
+                      rodrigues_to_matrix)
 from .base import CalibrationResult, Observations
-from .homography import fit_homography
+from .homography import fit_homographies
 from .lens_models import LENS_MODELS, free_coefficients, method_name
 from .refine import OpenCVModel, free_mask, refine
 
 
 def _v(H: np.ndarray, i: int, j: int) -> np.ndarray:
-    """Zhang's v_ij (eq. 8) from columns i, j of H."""
-    a, b = H[:, i], H[:, j]
-    return np.array([a[0] * b[0], a[0] * b[1] + a[1] * b[0], a[1] * b[1],
-                     a[2] * b[0] + a[0] * b[2], a[2] * b[1] + a[1] * b[2], a[2] * b[2]])
+    """Zhang's v_ij (eq. 8) from columns i, j of H (..., 3, 3) -> (..., 6)."""
+    a, b = np.moveaxis(H[..., :, i], -1, 0), np.moveaxis(H[..., :, j], -1, 0)
+    return np.stack([a[0] * b[0], a[0] * b[1] + a[1] * b[0], a[1] * b[1],
+                     a[2] * b[0] + a[0] * b[2], a[2] * b[1] + a[1] * b[2], a[2] * b[2]], -1)
 
 
-def intrinsics_from_homographies(Hs: list[np.ndarray], image_size, zero_skew: bool) -> np.ndarray:
+def intrinsics_from_homographies(Hs: np.ndarray, image_size, zero_skew: bool) -> np.ndarray:
     """Closed-form K (3, 3) from three or more plane homographies (two with zero skew).
 
     The homographies are first expressed in pixel units scaled by the image size and centred,
@@ -48,8 +49,8 @@ def intrinsics_from_homographies(Hs: list[np.ndarray], image_size, zero_skew: bo
     w, h = image_size
     s = 2.0 / (w + h)
     N = np.array([[s, 0.0, -s * w / 2], [0.0, s, -s * h / 2], [0.0, 0.0, 1.0]])
-    V = np.concatenate([np.stack([_v(N @ H, 0, 1), _v(N @ H, 0, 0) - _v(N @ H, 1, 1)])
-                        for H in Hs])
+    NH = N @ np.asarray(Hs, dtype=np.float64).reshape(-1, 3, 3)
+    V = np.stack([_v(NH, 0, 1), _v(NH, 0, 0) - _v(NH, 1, 1)], 1).reshape(-1, 6)
     cols = [0, 2, 3, 4, 5] if zero_skew else list(range(6))  # gamma = 0 <=> B12 = 0
     needed = len(cols) - 1
     if len(V) < needed:
@@ -76,25 +77,26 @@ def intrinsics_from_homographies(Hs: list[np.ndarray], image_size, zero_skew: bo
 
 
 def extrinsics_from_homography(K: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """cam_from_board (rvec, tvec) from K and H (section 3.1, rotation by SVD as in Appendix C)."""
+    """cam_from_board (rvec, tvec) from K and H (section 3.1, rotation by SVD as in Appendix C);
+    H (..., 3, 3) gives rvec and tvec (..., 3)."""
     A = np.linalg.solve(K, H)
-    A = A / np.linalg.norm(A[:, 0])  # A[2, 2] = H[2, 2] > 0 keeps the board origin in front
-    Q = np.column_stack([A[:, 0], A[:, 1], np.cross(A[:, 0], A[:, 1])])
-    return matrix_to_rodrigues(nearest_rotation(Q)), A[:, 2]
+    # A[2, 2] = H[2, 2] > 0 keeps the board origin in front
+    A = A / np.linalg.norm(A[..., :, :1], axis=-2, keepdims=True)
+    Q = np.stack([A[..., 0], A[..., 1], np.cross(A[..., 0], A[..., 1])], -1)
+    return matrix_to_rodrigues(nearest_rotation(Q)), A[..., 2]
 
 
 def radial_from_linear(K, rvecs, tvecs, obs: Observations) -> np.ndarray:
     """k1, k2 from eq. 13: (u_obs - u) = (u - u0) [r^2 r^4] k on ideal (undistorted) projections."""
-    D, d = [], []
-    for obj, img, rv, tv in zip(obs.object_points, obs.image_points, rvecs, tvecs):
-        cam = Camera.from_K(obs.camera_name, *obs.image_size, K, rvec=rv, tvec=tv)
-        p = cam.world_to_cam(obj)
-        r2 = np.sum((p[:, :2] / p[:, 2:]) ** 2, axis=1)
-        uv = cam.project(obj)
-        centred = uv - K[:2, 2]
-        D.append(np.stack([centred * r2[:, None], centred * (r2 * r2)[:, None]], -1).reshape(-1, 2))
-        d.append((img - uv).ravel())
-    return np.linalg.lstsq(np.concatenate(D), np.concatenate(d), rcond=None)[0]
+    counts = [len(o) for o in obs.object_points]
+    R = rodrigues_to_matrix(np.repeat(rvecs, counts, axis=0))
+    p = (R @ np.concatenate(obs.object_points)[:, :, None])[:, :, 0] + np.repeat(tvecs, counts, 0)
+    r2 = np.sum((p[:, :2] / p[:, 2:]) ** 2, axis=1)
+    uv = project_points(p, [K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]], np.zeros(8),
+                        np.zeros(3), np.zeros(3))
+    centred = uv - K[:2, 2]
+    D = np.stack([centred * r2[:, None], centred * (r2 * r2)[:, None]], -1).reshape(-1, 2)
+    return np.linalg.lstsq(D, (np.concatenate(obs.image_points) - uv).ravel(), rcond=None)[0]
 
 
 class ZhangCalibrator:
@@ -115,11 +117,9 @@ class ZhangCalibrator:
 
     def calibrate(self, obs: Observations) -> CalibrationResult:
         t0 = time.perf_counter()
-        Hs = [fit_homography(o[:, :2], p) for o, p in zip(obs.object_points, obs.image_points)]
+        Hs = fit_homographies([o[:, :2] for o in obs.object_points], obs.image_points)
         K = intrinsics_from_homographies(Hs, obs.image_size, self.zero_skew)
-        poses = [extrinsics_from_homography(K, H) for H in Hs]
-        rvecs = np.array([p[0] for p in poses])
-        tvecs = np.array([p[1] for p in poses])
+        rvecs, tvecs = extrinsics_from_homography(K, Hs)
         initial = Camera.from_K(obs.camera_name, *obs.image_size, K,
                                 radial_from_linear(K, rvecs, tvecs, obs))
 
