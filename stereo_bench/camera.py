@@ -439,6 +439,42 @@ def project_points(
     return project_with_jacobians(points, intrinsics, dist, rvec, tvec, jacobians=False)[0]
 
 
+def project_cam_with_jacobians(points_cam: np.ndarray, intrinsics: np.ndarray, dist: np.ndarray,
+                               jacobians: bool = True):
+    """Project points already in the camera frame (N,3): pixels (N,2) plus, if asked, a dict of
+    Jacobians ``point`` (N,2,3) over the camera-frame point, ``intrinsics`` (N,2,5) and ``dist``
+    (N,2,8). What a calibration's inner loop needs (its board points are put in the camera frame
+    by its own pose step); ``project_with_jacobians`` adds the pose. The 2x2 and 2x3 products
+    are written out entry by entry: small broadcast matrix products cost more than the math."""
+    Pc = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
+    fx, fy, cx, cy, s = np.asarray(intrinsics, dtype=np.float64)
+    inv_z = 1.0 / Pc[:, 2]
+    xy = Pc[:, :2] * inv_z[:, None]
+    xd, Jxy, Jdist = distort_with_jacobians(xy, dist, wrt_dist=jacobians)
+    uv = np.stack([fx * xd[:, 0] + s * xd[:, 1] + cx, fy * xd[:, 1] + cy], -1)
+    if not jacobians:
+        return uv, None
+    N = len(Pc)
+    Ji = np.zeros((N, 2, 5))
+    Ji[:, 0, 0] = xd[:, 0]
+    Ji[:, 1, 1] = xd[:, 1]
+    Ji[:, 0, 2] = 1.0
+    Ji[:, 1, 3] = 1.0
+    Ji[:, 0, 4] = xd[:, 1]
+    # d xd / d Pc = Jxy @ [[1/z, 0, -x/z], [0, 1/z, -y/z]], then d uv / d xd = [[fx, s], [0, fy]].
+    M = np.empty((N, 2, 3))
+    M[:, :, 0] = Jxy[:, :, 0] * inv_z[:, None]
+    M[:, :, 1] = Jxy[:, :, 1] * inv_z[:, None]
+    M[:, :, 2] = -(M[:, :, 0] * xy[:, 0, None] + M[:, :, 1] * xy[:, 1, None])
+    J_point = np.empty((N, 2, 3))
+    J_point[:, 0] = fx * M[:, 0] + s * M[:, 1]
+    J_point[:, 1] = fy * M[:, 1]
+    J_dist = np.empty((N, 2, 8))
+    J_dist[:, 0] = fx * Jdist[:, 0] + s * Jdist[:, 1]
+    J_dist[:, 1] = fy * Jdist[:, 1]
+    return uv, {"point": J_point, "intrinsics": Ji, "dist": J_dist}
+
+
 def project_with_jacobians(
     points: np.ndarray,
     intrinsics: np.ndarray,
@@ -453,37 +489,15 @@ def project_with_jacobians(
     ``dist`` (N,2,8), ``pose`` (N,2,6) over [rvec, tvec].
     """
     P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    fx, fy, cx, cy, s = np.asarray(intrinsics, dtype=np.float64)
     R = rodrigues_to_matrix(rvec)
     Pc = P @ R.T + np.asarray(tvec, dtype=np.float64)
-    z = Pc[:, 2]
-    xy = Pc[:, :2] / z[:, None]
-    xd, Jxy, Jdist = distort_with_jacobians(xy, dist, wrt_dist=jacobians)
-    uv = np.stack([fx * xd[:, 0] + s * xd[:, 1] + cx, fy * xd[:, 1] + cy], -1)
+    uv, J = project_cam_with_jacobians(Pc, intrinsics, dist, jacobians)
     if not jacobians:
         return uv, None
-    N = len(P)
-    A = np.array([[fx, s], [0.0, fy]])  # d uv / d xd
-    Ji = np.zeros((N, 2, 5))
-    Ji[:, 0, 0] = xd[:, 0]
-    Ji[:, 1, 1] = xd[:, 1]
-    Ji[:, 0, 2] = 1.0
-    Ji[:, 1, 3] = 1.0
-    Ji[:, 0, 4] = xd[:, 1]
-    # d xy / d Pc: [[1/z, 0, -x/z], [0, 1/z, -y/z]]
-    Jproj = np.zeros((N, 2, 3))
-    Jproj[:, 0, 0] = 1 / z
-    Jproj[:, 1, 1] = 1 / z
-    Jproj[:, 0, 2] = -xy[:, 0] / z
-    Jproj[:, 1, 2] = -xy[:, 1] / z
-    J_uv_Pc = A @ Jxy @ Jproj  # (N,2,3)
-    Jpose = np.concatenate([J_uv_Pc @ rotate_jacobian(rvec, P), J_uv_Pc], axis=-1)
-    return uv, {
-        "point": J_uv_Pc @ R,
-        "intrinsics": Ji,
-        "dist": A @ Jdist,
-        "pose": Jpose,
-    }
+    J_uv_Pc = J["point"]
+    J["pose"] = np.concatenate([J_uv_Pc @ rotate_jacobian(rvec, P), J_uv_Pc], axis=-1)
+    J["point"] = J_uv_Pc @ R
+    return uv, J
 
 
 # ----------------------------------------------------------------------------------------------

@@ -37,7 +37,7 @@ from typing import Protocol
 import numpy as np
 
 from ..camera import (DIST_NAMES, INTRINSIC_NAMES, Camera, matrix_to_rodrigues,
-                      project_with_jacobians, rodrigues_to_matrix, rotate_jacobian)
+                      project_cam_with_jacobians, rodrigues_to_matrix, rotate_jacobian)
 
 
 EPS = np.finfo(np.float64).eps
@@ -57,11 +57,9 @@ class OpenCVModel:
     """The camera core's model: params [fx, fy, cx, cy, skew, k1, k2, p1, p2, k3, k4, k5, k6]."""
 
     param_names = INTRINSIC_NAMES + DIST_NAMES
-    _zero = np.zeros(3)
 
     def project(self, params, points_cam, jacobians=True):
-        uv, J = project_with_jacobians(points_cam, params[:5], params[5:], self._zero, self._zero,
-                                       jacobians=jacobians)
+        uv, J = project_cam_with_jacobians(points_cam, params[:5], params[5:], jacobians)
         if not jacobians:
             return uv, None, None
         return uv, np.concatenate([J["intrinsics"], J["dist"]], -1), J["point"]
