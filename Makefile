@@ -4,7 +4,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test venv clean mrcal-env
+.PHONY: demo test venv clean mrcal-env bench-deps
 
 $(BIN)/stereo-bench: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -22,6 +22,11 @@ $(BIN)/stereo-bench: pyproject.toml
 	touch $@
 
 MRCAL_PYTHON ?= $(firstword $(foreach v,3.12 3.13,$(shell ls $(HOME)/.pyenv/versions/$(v)*/bin/python$(v) /usr/local/bin/python$(v) /usr/bin/python$(v) 2>/dev/null)))
+
+# What benchmarks/ compare against beyond the test set: jax, which aniposelib's triangulation
+# imports (benchmarks/triangulation_speed.py says so and skips that peer without it).
+bench-deps: venv
+	$(BIN)/python -m pip install --quiet "jax[cpu]==0.10.2"
 
 mrcal-env:
 	@if [ -z "$(MRCAL_PYTHON)" ]; then echo "no python3.12+ found: mrcal tests will skip"; exit 0; fi; \
