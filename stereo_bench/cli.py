@@ -140,9 +140,16 @@ def cmd_run(args) -> int:
                            f"{out}/plots")
 
 
+#: Processes of a sweep's embedded cluster when --workers is not given.
+SWEEP_WORKERS = 2
+
+
 def cmd_sweep(args) -> int:
     from .sweep import load_grid, run_sweep
 
+    if args.scheduler is not None and args.workers is not None:
+        raise ValueError("--workers applies to the embedded cluster; with --scheduler the "
+                         "cluster's workers run the configurations (start as many as wanted)")
     sweep = load_grid(args.grid)
     grid, configs = sweep.grid, sweep.configurations
     out = Path(args.out or Path("out") / grid.name)
@@ -150,11 +157,12 @@ def cmd_sweep(args) -> int:
                   f"({sweep.trials_reason})", markup=False, highlight=False)
     with progress_bar() as bar:
         task = bar.add_task(f"{grid.name}: configurations", total=len(configs))
-        result = run_sweep(sweep, out, args.workers,
-                           lambda d, n: bar.update(task, completed=d, total=n))
+        result = run_sweep(sweep, out, args.workers or SWEEP_WORKERS,
+                           lambda d, n: bar.update(task, completed=d, total=n),
+                           scheduler=args.scheduler)
     stages = result["stage_time_s"]
     console.print(f"{len(configs)} configurations in {result['wall_time_s']:.0f} s wall time "
-                  f"with {args.workers} worker(s); summed stage times: "
+                  f"with {result['workers']} worker(s); summed stage times: "
                   + ", ".join(f"{k[:-2]} {v:.0f} s" for k, v in stages.items())
                   + f"; dominant stage: {max(stages, key=stages.get)[:-2]}")
     if result["failed"]:
@@ -445,13 +453,19 @@ def build_parser() -> argparse.ArgumentParser:
     w = sub.add_parser("sweep", help="run a grid of configurations (e.g. the paper's 40)",
                        description="Cross rig files with axes of rig-file fields (GRID.yaml, "
                                    "see docs/sweeps.md and configs/grids/) and run each "
-                                   "configuration in parallel processes; one table for the whole "
+                                   "configuration as a task of a Dask cluster (embedded, or a "
+                                   "running one with --scheduler); one table for the whole "
                                    "grid, curves with 95 % intervals over seeds and paired "
                                    "comparisons of methods and patterns.")
     w.add_argument("grid", help="grid YAML file")
-    w.add_argument("--out", help="output directory (default: out/<grid name>)")
-    w.add_argument("--workers", type=int, default=2,
-                   help="configurations run in parallel (default: %(default)s)")
+    w.add_argument("--out", help="output directory (default: out/<grid name>); with "
+                                 "--scheduler a folder every worker sees at the same path")
+    w.add_argument("--workers", type=int,
+                   help=f"processes of the embedded cluster, configurations run in parallel "
+                        f"(default: {SWEEP_WORKERS})")
+    w.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run on the Dask cluster of this running scheduler (tcp://HOST:PORT) "
+                        "instead of an embedded one; its workers run one thread each")
     w.set_defaults(func=cmd_sweep)
     return p
 
