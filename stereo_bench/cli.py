@@ -197,14 +197,12 @@ def _grid_size(option: str, text: str) -> tuple[int, int]:
 
 def board_from_args(args):
     """The board of ``calibrate-images`` from its options (or --board-file), validated by the
-    rig file's own schema (config.PatternConfig), so both name the same fields."""
-    import yaml
-
-    from .config import PatternConfig
+    rig file's own schema (config.PatternConfig), so both name the same fields; and whether
+    the user gave a circle grid's disc diameter."""
+    from .config import PatternConfig, load_yaml
 
     if args.board_file:
-        with open(args.board_file) as f:
-            data = yaml.safe_load(f)
+        data = load_yaml(args.board_file, "board file")
         data = data.get("pattern", data) if isinstance(data, dict) else data
         source = args.board_file
     else:
@@ -232,21 +230,10 @@ def board_from_args(args):
                 data[option] = value
         source = "the --board options"
     try:
-        return PatternConfig.model_validate(data).build()
+        board = PatternConfig.model_validate(data).build()
     except Exception as e:  # pydantic's ValidationError or the board's own ValueError
         raise ValueError(f"{source}: {e}") from None
-
-
-def _diameter_given(args) -> bool:
-    """Whether the user gave the circle grid's disc diameter (an option, or in --board-file)."""
-    if args.board_file:
-        import yaml
-
-        with open(args.board_file) as f:
-            data = yaml.safe_load(f)
-        data = data.get("pattern", data) if isinstance(data, dict) else {}
-        return "diameter_mm" in data
-    return args.diameter_mm is not None
+    return board, isinstance(data, dict) and "diameter_mm" in data
 
 
 def _camera_folders(specs: list[str]) -> dict[str, str]:
@@ -270,10 +257,10 @@ def cmd_calibrate_images(args) -> int:
     from .rundir import CapturePaths, write_text
 
     methods = _methods(args.methods)
-    pattern = board_from_args(args)
+    pattern, diameter_given = board_from_args(args)
     source = ImageFolders.open(_camera_folders(args.cameras), pattern)
     measured = []
-    if hasattr(pattern, "diameter_mm") and not _diameter_given(args):
+    if hasattr(pattern, "diameter_mm") and not diameter_given:
         source, note = with_measured_diameter(source)
         measured.append(note)
         console.print(note, markup=False, highlight=False)

@@ -12,7 +12,7 @@ import yaml
 
 from stereo_bench.capture import calibrate_capture
 from stereo_bench.cli import main
-from stereo_bench.config import parse_rig
+from stereo_bench.config import ConfigError, parse_rig
 from stereo_bench.image_folders import ImageFolders, frame_key
 from stereo_bench.patterns import Checkerboard
 from stereo_bench.pipeline import run
@@ -114,9 +114,12 @@ def test_board_file_reads_the_rig_files_pattern_section(tmp_path):
 
     path = tmp_path / "board.yaml"
     path.write_text("pattern:\n  kind: checkerboard\n  inner_corners: [9, 6]\n  square_mm: 24.5\n")
-    board = board_from_args(Namespace(board_file=str(path)))
+    board, diameter_given = board_from_args(Namespace(board_file=str(path)))
     assert isinstance(board, Checkerboard) and board.pattern_size == (9, 6)
-    assert board.square_mm == 24.5
+    assert board.square_mm == 24.5 and not diameter_given
+    path.write_text("kind: checkerboard\ninner_corners: [9, 6\n")  # not YAML
+    with pytest.raises(ConfigError, match="board.yaml: not valid YAML"):
+        board_from_args(Namespace(board_file=str(path)))
 
 
 def test_real_opencv_pair_through_the_command(tmp_path, opencv_pair):
