@@ -293,12 +293,14 @@ def cmd_calibrate_images(args) -> int:
 
 
 def cmd_export(args) -> int:
-    from .exchange import export_estimates
+    from .exchange import estimates_of, write_estimates
     from .rundir import CapturePaths
 
+    # The source is read before the output folder is made: a wrong path creates nothing.
+    estimates, where = estimates_of(args.source, args.method, args.seed)
     out = Path(args.out or CapturePaths(args.source).export(args.format, args.method))
     with locked(out):
-        written, where = export_estimates(args.source, args.method, args.format, out, args.seed)
+        written = write_estimates(estimates, args.format, out)
     console.print(f"{args.method}'s estimates of {where} in {args.format} format:",
                   markup=False, highlight=False)
     for path in written:

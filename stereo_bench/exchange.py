@@ -101,16 +101,14 @@ def _trial_estimates(trial: TrialPaths, method: str, where: str) -> dict[str, li
     return {p.stem: [Camera.load_json(p)] for p in files}
 
 
-def export_estimates(folder, method: str, fmt: str, out, seed: int | None = None,
-                     **options) -> tuple[list[Path], str]:
-    """Write ``method``'s estimates in ``folder`` (``estimates_of``) as format ``fmt`` under
-    ``out`` (a rig directly, single cameras in a folder each); the files and their source."""
-    estimates, where = estimates_of(folder, method, seed)
+def write_estimates(estimates: dict[str, list[Camera]], fmt: str, out, **options) -> list[Path]:
+    """``estimates_of``'s rigs in format ``fmt`` under ``out`` (a rig directly, single cameras
+    in a folder each); the files written."""
     written = []
     for label, cams in estimates.items():
         target = Path(out) if label == "rig" else Path(out) / label
         written += io.export(cams, target, fmt, **options)
-    return written, where
+    return written
 
 
 def score_calibration(ds: Dataset, path, fmt: str | None, out) -> dict:

@@ -72,3 +72,10 @@ def test_pose_eval_takes_a_users_calibration(stereo_run, tmp_path):
     # The same cameras through Kalibr's file: the same pose, to rounding.
     a, b = (m["triangulated"]["mpjpe_mm"]["mean"] for m in (mine, theirs))
     assert np.isclose(a, b, rtol=1e-6)
+
+
+def test_export_of_a_missing_source_creates_nothing(tmp_path, capsys):
+    missing = tmp_path / "no_run"
+    assert main(["export", str(missing), "--format", "kalibr"]) == 2
+    assert "neither a run directory" in capsys.readouterr().err
+    assert not missing.exists()
