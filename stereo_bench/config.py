@@ -485,6 +485,30 @@ class EnvironmentConfig(_Strict):
         return merged
 
 
+class RendererConfig(_Strict):
+    """Which backend forms the images: ``analytic`` (the package's exact renderer, every part of
+    the imaging model) or ``blender`` (Cycles in the worker environment, render/blender/: a
+    matte textured plane lit by the environment's light, the lens applied by one exact remap;
+    ``samples`` per pixel, ``threads`` for Cycles, None: all cores)."""
+
+    kind: Literal["analytic", "blender"] = "analytic"
+    samples: Int = Field(64, ge=1, le=4096)
+    threads: Int | None = Field(None, ge=1, le=256)
+
+
+#: What the Blender backend does not model, as (field, test on the resolved config, why).
+_NOT_IN_BLENDER = (
+    ("environment.motion", lambda c: c.environment.motion.exposure_ms > 0
+     and c.environment.motion.speed_mm_s > 0, "motion blur"),
+    ("environment.light.specular", lambda c: c.environment.light.specular > 0,
+     "a glossy print (Blinn-Phong)"),
+    ("environment.board", lambda c: c.environment.board != BoardConfig(),
+     "a board that is not its pattern"),
+    ("pattern.two_sided", lambda c: bool(c.pattern.overrides().get("two_sided")),
+     "a two-sided board"),
+)
+
+
 class RigConfig(_Strict):
     """A rig file. The cameras are given as a list (``cameras``) or placed by a ``studio``
     layout; a studio is expanded into the list when the file is read, so the resolved
@@ -498,6 +522,16 @@ class RigConfig(_Strict):
     trajectory: TrajectoryConfig = TrajectoryConfig()
     environment: EnvironmentConfig = EnvironmentConfig()
     calibration: CalibrationConfig = CalibrationConfig()
+    renderer: RendererConfig = RendererConfig()
+
+    @model_validator(mode="after")
+    def _blender_can_render(self):
+        if self.renderer.kind == "blender":
+            for field, used, what in _NOT_IN_BLENDER:
+                if used(self):
+                    raise ValueError(f"{field}: the blender renderer does not model {what}; "
+                                     f"use renderer.kind: analytic")
+        return self
 
     @model_validator(mode="after")
     def _cameras(self):

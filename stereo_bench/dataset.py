@@ -22,6 +22,7 @@ rendered from, so a run reuses it only for the same configuration.
 
 from __future__ import annotations
 
+import contextlib
 import struct
 import time
 from dataclasses import dataclass
@@ -73,6 +74,32 @@ def dataset_fingerprint(cfg: RigConfig) -> str:
                        cfg.model_dump(mode="json", exclude={"calibration"}))
 
 
+@contextlib.contextmanager
+def _renderers(cfg: RigConfig, paths: DatasetPaths):
+    """``make(camera, pattern, settings, R, t)`` -> the rig file's renderer for one camera (R, t:
+    its cam_from_board over the frames). The Blender backend shares one render worker between
+    the cameras and removes its scratch frames when done."""
+    if cfg.renderer.kind == "analytic":
+        yield lambda cam, pattern, settings, R, t: AnalyticRenderer(cam, pattern, settings)
+        return
+    from .render.blender.board import BlenderRenderer, texture_density
+    from .render.blender.client import Worker
+
+    made = []
+
+    def make(cam, pattern, settings, R, t):
+        made.append(BlenderRenderer(cam, pattern, settings, worker, paths.blender,
+                                    texture_density(cam, pattern, R, t), cfg.renderer.samples))
+        return made[-1]
+
+    with Worker("render", cfg.renderer.threads) as worker:
+        try:
+            yield make
+        finally:
+            for renderer in made:
+                renderer.close()
+
+
 class UnusableRigError(ConfigError):
     """A valid rig file whose cameras would never see the board well enough to detect it."""
 
@@ -102,17 +129,18 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None) -> "Dataset":
     total = len(rig.cameras) * len(rig.trajectory)
     done = 0
     t0 = time.perf_counter()
-    for c, cam in enumerate(rig.cameras):
-        settings = render_settings(cfg, rig, cam)
-        renderer = AnalyticRenderer(cam, rig.pattern, settings)
-        R, t = rig.cam_from_board(cam)
-        omega, v = rig.board_velocity(cam, settings.motion.speed_mm_s)
-        for f in range(len(rig.trajectory)):
-            image = renderer.render(R[f], t[f], frame_rng(cfg.seed, c, f), (omega[f], v[f]))
-            write_png(paths.image(cam.name, f), image)
-            done += 1
-            if progress:
-                progress(done, total)
+    with _renderers(cfg, paths) as make_renderer:
+        for c, cam in enumerate(rig.cameras):
+            settings = render_settings(cfg, rig, cam)
+            R, t = rig.cam_from_board(cam)
+            renderer = make_renderer(cam, rig.pattern, settings, R, t)
+            omega, v = rig.board_velocity(cam, settings.motion.speed_mm_s)
+            for f in range(len(rig.trajectory)):
+                image = renderer.render(R[f], t[f], frame_rng(cfg.seed, c, f), (omega[f], v[f]))
+                write_png(paths.image(cam.name, f), image)
+                done += 1
+                if progress:
+                    progress(done, total)
 
     cams = rig.cameras
     arrays = {

@@ -255,6 +255,11 @@ class DatasetPaths:
     def image(self, camera: str, frame: int) -> Path:
         return self.images(camera) / f"{frame:06d}.png"
 
+    @property
+    def blender(self) -> Path:
+        """The Blender backend's inputs and scratch files (its texture, the pinhole frame)."""
+        return self.root / "blender"
+
 
 @dataclass(frozen=True)
 class TrialPaths:

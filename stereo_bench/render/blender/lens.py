@@ -1,0 +1,90 @@
+"""The lens for the Blender backend: render undistorted, then distort with one exact remap.
+
+Blender's own lens distortion (the compositor's Movie Distortion node) shifts whole images by
+several pixels, so Blender renders a pinhole view (:class:`PinholeView`) wide enough for every
+ray of the true camera's image, and :meth:`PinholeView.distort` takes each pixel of the true
+camera to the pinhole image through the camera model's own unprojection (``PixelRays``: Newton
+to 1e-10 px), so both backends share one ground truth.
+
+Sampling: the pinhole image is rendered ``scale`` times denser than the true focal length where
+the lens magnifies (pincushion edges), so that no true pixel is drawn from a coarser one; the
+remap interpolates bilinearly (symmetric: it blurs by under a pixel and moves no edge).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ...camera import Camera
+from ..analytic import PixelRays
+
+MAX_SCALE = 2.0
+MARGIN_PX = 2  # pinhole pixels beyond the outermost ray: the bilinear taps stay inside
+
+
+@dataclass(frozen=True, eq=False)
+class PinholeView:
+    """A distortion-free camera (``width``, ``height``, ``fx``, ``fy``, ``cx``, ``cy``, OpenCV
+    pixel centres) that sees every ray of ``camera``, with the same orientation and centre;
+    ``map_xy`` (H, W, 2) float32: for each pixel of ``camera``, where it lies in this view."""
+
+    camera: Camera
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    map_xy: np.ndarray
+
+    @classmethod
+    def of(cls, camera: Camera, rays: PixelRays | None = None) -> "PinholeView":
+        xy = (rays if rays is not None else PixelRays(camera)).xy.astype(np.float64)
+        inner = xy[1:-1, 1:-1]
+        # True pixels per pinhole pixel of the true focal length, along rows and columns; the
+        # smallest spacing says how much denser the pinhole image must be.
+        step_u = np.hypot(*np.moveaxis(np.diff(inner, axis=1), -1, 0)) * camera.fx
+        step_v = np.hypot(*np.moveaxis(np.diff(inner, axis=0), -1, 0)) * camera.fy
+        scale = float(np.clip(1.0 / min(step_u.min(), step_v.min()), 1.0, MAX_SCALE))
+        fx, fy = camera.fx * scale, camera.fy * scale
+        lo, hi = inner.reshape(-1, 2).min(0), inner.reshape(-1, 2).max(0)
+        cx = -lo[0] * fx + MARGIN_PX
+        cy = -lo[1] * fy + MARGIN_PX
+        width = int(math.ceil(hi[0] * fx + cx)) + MARGIN_PX + 1
+        height = int(math.ceil(hi[1] * fy + cy)) + MARGIN_PX + 1
+        map_xy = np.empty(inner.shape, np.float32)
+        map_xy[..., 0] = inner[..., 0] * fx + cx
+        map_xy[..., 1] = inner[..., 1] * fy + cy
+        return cls(camera, width, height, fx, fy, cx, cy, map_xy)
+
+    @property
+    def scale(self) -> float:
+        return self.fx / self.camera.fx
+
+    def spec(self, cam_from_world_mm: np.ndarray | None = None, f_number: float | None = None,
+             focal_length_mm: float = 8.0, focus_mm: float | None = None) -> dict:
+        """The worker's camera description (metres; see worker.py). ``cam_from_world_mm``: 4x4,
+        identity when the scene is built in this camera's frame. The sensor's width follows
+        the lens: pixel pitch = focal_length_mm / fx, so Blender's depth of field is the thin
+        lens of the imaging model."""
+        M = np.eye(4) if cam_from_world_mm is None else np.array(cam_from_world_mm, float)
+        M = M.copy()
+        M[:3, 3] /= 1000.0
+        sensor_mm = self.width * focal_length_mm / self.fx
+        return {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy,
+                "cx": self.cx, "cy": self.cy, "cam_from_world": M.tolist(),
+                "sensor_mm": sensor_mm, "f_number": f_number,
+                "focus_m": None if focus_mm is None else focus_mm / 1000.0}
+
+    def distort(self, image: np.ndarray, border=0.0) -> np.ndarray:
+        """The pinhole ``image`` (height, width[, channels]) seen through ``camera``'s lens:
+        (camera.height, camera.width[, channels]), same dtype, ``border`` where no ray lands."""
+        if image.shape[:2] != (self.height, self.width):
+            raise ValueError(f"PinholeView.distort: expected a {self.width}x{self.height} image, "
+                             f"got {image.shape[1]}x{image.shape[0]}")
+        return cv2.remap(image, self.map_xy, None, cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=border)
