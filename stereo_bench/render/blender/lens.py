@@ -7,8 +7,12 @@ camera to the pinhole image through the camera model's own unprojection (``Pixel
 to 1e-10 px), so both backends share one ground truth.
 
 Sampling: the pinhole image is rendered ``scale`` times denser than the true focal length where
-the lens magnifies (pincushion edges), so that no true pixel is drawn from a coarser one; the
-remap interpolates bilinearly (symmetric: it blurs by under a pixel and moves no edge).
+the lens magnifies (pincushion edges), so that no true pixel is drawn from a coarser one. Each
+true pixel is the mean of ``SUBSAMPLES`` x ``SUBSAMPLES`` bilinear samples spread over its area
+(through the map's local Jacobian), as a sensor's pixel integrates its area: one sample at the
+pixel's centre measured 0.066 px mean checkerboard error and a 0.007 px bias on the paper's wide
+camera (the same through the analytic renderer's pinhole images), 3 x 3 samples 0.010 px and
+0.0002 px.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from ...camera import Camera
 from ..analytic import PixelRays
 
 MAX_SCALE = 2.0
+SUBSAMPLES = 3
 MARGIN_PX = 2  # pinhole pixels beyond the outermost ray: the bilinear taps stay inside
 
 
@@ -30,7 +35,8 @@ MARGIN_PX = 2  # pinhole pixels beyond the outermost ray: the bilinear taps stay
 class PinholeView:
     """A distortion-free camera (``width``, ``height``, ``fx``, ``fy``, ``cx``, ``cy``, OpenCV
     pixel centres) that sees every ray of ``camera``, with the same orientation and centre;
-    ``map_xy`` (H, W, 2) float32: for each pixel of ``camera``, where it lies in this view."""
+    ``map_xy`` (H, W, 2) float32: for each pixel of ``camera``, where its centre lies in this view;
+    ``map_du``, ``map_dv``: how far that moves per pixel along the camera's rows and columns."""
 
     camera: Camera
     width: int
@@ -40,6 +46,8 @@ class PinholeView:
     cx: float
     cy: float
     map_xy: np.ndarray
+    map_du: np.ndarray
+    map_dv: np.ndarray
 
     @classmethod
     def of(cls, camera: Camera, rays: PixelRays | None = None) -> "PinholeView":
@@ -56,10 +64,12 @@ class PinholeView:
         cy = -lo[1] * fy + MARGIN_PX
         width = int(math.ceil(hi[0] * fx + cx)) + MARGIN_PX + 1
         height = int(math.ceil(hi[1] * fy + cy)) + MARGIN_PX + 1
-        map_xy = np.empty(inner.shape, np.float32)
-        map_xy[..., 0] = inner[..., 0] * fx + cx
-        map_xy[..., 1] = inner[..., 1] * fy + cy
-        return cls(camera, width, height, fx, fy, cx, cy, map_xy)
+        to_view = np.array([fx, fy])
+        map_xy = (inner * to_view + [cx, cy]).astype(np.float32)
+        # Central differences over the rays' margin ring: centred at every pixel, edges included.
+        map_du = (0.5 * (xy[1:-1, 2:] - xy[1:-1, :-2]) * to_view).astype(np.float32)
+        map_dv = (0.5 * (xy[2:, 1:-1] - xy[:-2, 1:-1]) * to_view).astype(np.float32)
+        return cls(camera, width, height, fx, fy, cx, cy, map_xy, map_du, map_dv)
 
     @property
     def scale(self) -> float:
@@ -86,5 +96,16 @@ class PinholeView:
         if image.shape[:2] != (self.height, self.width):
             raise ValueError(f"PinholeView.distort: expected a {self.width}x{self.height} image, "
                              f"got {image.shape[1]}x{image.shape[0]}")
-        return cv2.remap(image, self.map_xy, None, cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=border)
+        source = image.astype(np.float32)
+        total = None
+        offsets = (np.arange(SUBSAMPLES) + 0.5) / SUBSAMPLES - 0.5
+        for dv in offsets:
+            for du in offsets:
+                where = self.map_xy + np.float32(du) * self.map_du + np.float32(dv) * self.map_dv
+                sample = cv2.remap(source, where, None, cv2.INTER_LINEAR,
+                                   borderMode=cv2.BORDER_CONSTANT, borderValue=border)
+                total = sample if total is None else total + sample
+        total *= np.float32(1.0 / SUBSAMPLES**2)
+        if image.dtype == np.uint8:
+            return np.clip(np.rint(total), 0, 255).astype(np.uint8)
+        return total.astype(image.dtype, copy=False)
