@@ -26,13 +26,16 @@ from stereo_bench.calibrate import available_methods, parse_method
 from stereo_bench.config import ConfigError, load_rig
 from stereo_bench.cli import say
 from stereo_bench.pipeline import Trial, load_run
+from stereo_bench.render.blender.client import WorkerError
+from stereo_bench.render.blender.environment import WorkerUnavailable
 from stereo_bench.rundir import RunPaths, is_safe_name, locked, write_json, write_text
 
 from .body import NUM_JOINTS, load_body_model
 from .fit import fit_smpl
 from .metrics import excess_mpjpe, pose_metrics
 from .motion import JOINT_NAMES, MOTIONS
-from .observe import DetectorModel, observe, read_openpose, scene_occlusion
+from .observe import (DetectorModel, observe, read_openpose, scene_occlusion,
+                      write_openpose)
 from .reconstruct import triangulate_joints
 from .report import (COST, FLOOR, STAGES, aggregate, headline_stage, markdown, plot_mpjpe,
                      plot_skeleton)
@@ -96,6 +99,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keypoints", metavar="DIR",
                    help="use a detector's OpenPose-style JSON files instead of synthetic "
                         "keypoints: DIR/<camera>/<frame:06d>_keypoints.json, SMPL's 24 joints")
+    p.add_argument("--rendered", action="store_true",
+                   help="render the body with Blender from every true camera (OUT/body/) and "
+                        "take the keypoints MediaPipe's BlazePose finds in those images, instead "
+                        "of synthetic ones (needs `stereo-bench blender-setup`; docs/photoreal.md)")
+    p.add_argument("--render-samples", type=int, default=16,
+                   help="Cycles samples per pixel of --rendered (default: %(default)s)")
     p.add_argument("--robust", action="store_true",
                    help="reject outlier views while triangulating (needs 3+ cameras)")
     p.add_argument("--fit-smpl", action="store_true",
@@ -161,6 +170,10 @@ def check_options(args) -> None:
     for option, value in (("--outlier-rate", args.outlier_rate), ("--miss-rate", args.miss_rate)):
         if value is not None:
             need(math.isfinite(value) and 0 <= value < 1, option, "a rate in [0, 1)", value)
+    need(1 <= args.render_samples <= 4096, "--render-samples", "1..4096", args.render_samples)
+    if args.rendered and args.keypoints:
+        raise ValueError("--rendered detects keypoints in rendered images; --keypoints reads "
+                         "them from files: give one")
     if args.distance_mm is not None:
         need(math.isfinite(args.distance_mm) and 0 < args.distance_mm <= MAX_DISTANCE_MM,
              "--distance-mm", f"a distance in (0, {MAX_DISTANCE_MM:g}] mm", args.distance_mm)
@@ -284,9 +297,13 @@ def evaluate(args) -> tuple[dict, dict]:
     in the rig's (right, depth, up) axes, for the skeleton plot})."""
     check_options(args)
     noise = (args.noise_px, args.outlier_rate, args.miss_rate)
-    if args.keypoints and any(v is not None for v in noise):
+    if (args.keypoints or args.rendered) and any(v is not None for v in noise):
         raise ValueError("--noise-px, --outlier-rate and --miss-rate shape synthetic keypoints; "
-                         "they do not apply with --keypoints")
+                         "they do not apply with --keypoints or --rendered")
+    if args.rendered:
+        from stereo_bench.render.blender.environment import require
+
+        require()  # before anything is placed or rendered
     rig, env, run_trials = _inputs(args)
     if len(run_trials[0].truth) < 2:
         raise ValueError(f"{args.run or args.rig}: {len(run_trials[0].truth)} camera; "
@@ -320,9 +337,13 @@ def evaluate(args) -> tuple[dict, dict]:
                     raise ValueError(f"{args.run or args.rig}: {e}") from None
             placement += [str(w.message) for w in caught if str(w.message) not in placement]
             occluded = scene_occlusion(truth, scene) if detector.occlusion else None
-            scenes[key] = scene, occluded
-        scene, occluded = scenes[key]
-        if args.keypoints:
+            rendered = (_rendered_keypoints(truth, scene, model, output_dir(args, rig), args)
+                        if args.rendered else None)
+            scenes[key] = scene, occluded, rendered
+        scene, occluded, rendered = scenes[key]
+        if rendered is not None:
+            keypoints, detector_2d = rendered
+        elif args.keypoints:
             keypoints = read_openpose(args.keypoints, truth, args.frames)
         else:
             keypoints = observe(truth, scene, detector, np.random.default_rng([args.seed, i]),
@@ -345,7 +366,7 @@ def evaluate(args) -> tuple[dict, dict]:
         console.print(f"trial {i + 1}/{n_trials}, MPJPE ({dict(STAGES)[shown]}): " + ", ".join(
             f"{m} {e[shown]['mpjpe_mm']:.3f} mm" if "error" not in e else f"{m} failed"
             for m, e in entries.items()))
-    first_scene = next(iter(scenes.values()))[0]
+    first_scene, _, first_rendered = next(iter(scenes.values()))
     settings = {
         "calib": args.calib,
         "calibration": {m: {"file": args.calibration, "cameras": how}
@@ -354,7 +375,9 @@ def evaluate(args) -> tuple[dict, dict]:
         "distance_mm": first_scene.distance_mm, "surrounded": first_scene.surrounded,
         "robust": args.robust, "fit_smpl": args.fit_smpl,
         "model_path": args.model_path, "source": args.run or args.rig, "seed": args.seed,
-        "keypoints": (f"OpenPose files from {args.keypoints}" if args.keypoints else
+        "keypoints": ("BlazePose (MediaPipe 0.10.21, full) on Blender renders, "
+                      f"{args.render_samples} samples" if args.rendered else
+                      f"OpenPose files from {args.keypoints}" if args.keypoints else
                       f"synthetic, noise {detector.noise_px} px, outliers "
                       f"{detector.outlier_rate:.0%}, misses {detector.miss_rate:.0%}, occlusion "
                       f"{'on' if detector.occlusion else 'off'}"),
@@ -362,8 +385,31 @@ def evaluate(args) -> tuple[dict, dict]:
     results = {"rig": rig, "environment": env, "settings": settings, "detections": detections,
                "under_two_views": {j: int(n) for j, n in zip(JOINT_NAMES, under_two_views) if n},
                "methods": {m: aggregate(per_method[m]) for m in methods}, "trials": raw}
+    if first_rendered is not None:
+        results["detector_2d"] = first_rendered[1]
     results["warnings"] = placement + _warnings(results)
     return results, examples
+
+
+def output_dir(args, rig: str) -> Path:
+    return Path(args.out or Path("out") / (rig if is_safe_name(rig) else "run") / "pose_eval")
+
+
+def _rendered_keypoints(cameras, scene, model, out: Path, args):
+    """(keypoints, the detector's error per joint) of BlazePose on Blender renders of ``scene``
+    through ``cameras``, written to OUT/body/ (images, OpenPose files, true joints)."""
+    from .photoreal import detect_keypoints, keypoint_errors, render_body
+
+    body = out / "body"
+    console.print(f"rendering {len(scene.joints)} frames x {len(cameras)} cameras with Blender "
+                  f"into {body}/images ...")
+    render_body(cameras, scene, model.lbs_weights.detach().cpu().numpy(), body,
+                samples=args.render_samples,
+                progress=lambda d, n: console.print(f"  frame {d}/{n}") if d % 10 == 0 or d == n
+                else None)
+    keypoints = detect_keypoints(cameras, body / "images", len(scene.joints))
+    write_openpose(body / "keypoints", cameras, keypoints)
+    return keypoints, keypoint_errors(cameras, keypoints, scene.joints)
 
 
 def write_outputs(results: dict, examples: dict, out: Path) -> None:
@@ -384,11 +430,10 @@ def main(argv=None) -> int:
         args.run = DEFAULT_RUN
     try:
         results, examples = evaluate(args)
-        rig = results["rig"] if is_safe_name(results["rig"]) else "run"
-        out = Path(args.out or Path("out") / rig / "pose_eval")
+        out = output_dir(args, results["rig"])
         with locked(out):
             write_outputs(results, examples, out)
-    except (ConfigError, FileNotFoundError, ValueError) as e:
+    except (ConfigError, FileNotFoundError, ValueError, WorkerUnavailable, WorkerError) as e:
         say("error", "red", str(e))
         return 2
     except OSError as e:

@@ -142,6 +142,18 @@ def markdown(results: dict) -> str:
         cells = [fmt(m[stage]["per_joint_mm"][j]) if stage in m else "failed"
                  for m in methods.values()]
         lines.append(f"| {j} | " + " | ".join(cells) + " |")
+    detector = results.get("detector_2d")
+    if detector:
+        lines += ["", "## The 2D detector against the projected true joints", "",
+                  "BlazePose's landmarks mapped to SMPL's joints (pose_eval/photoreal.py), px over "
+                  "the joint views it detected. Part of this is the gap between the two joint "
+                  "definitions, which the gt row above carries too. The spine and collar joints have no "
+                  "BlazePose landmark: never detected, they count as missing in every row.", "",
+                  "| joint | detected | of | mean px | median px |", "|---|---|---|---|---|"]
+        for j, row in detector.items():
+            mean = "-" if row["mean_px"] is None else f"{row['mean_px']:.1f}"
+            median = "-" if row["median_px"] is None else f"{row['median_px']:.1f}"
+            lines.append(f"| {j} | {row['detected']} | {row['views']} | {mean} | {median} |")
     lines += ["", "## Counts", "",
               "| method | missing joints | of |", "|---|---|---|"]
     for name, m in methods.items():

@@ -12,6 +12,8 @@ from rich.text import Text
 
 from .config import ConfigError, load_rig, parse_rig
 from .rundir import locked
+from .render.blender.client import WorkerError
+from .render.blender.environment import WorkerUnavailable
 
 console = Console(stderr=True)
 MAX_TRIALS = 1000
@@ -38,7 +40,7 @@ def _warn(lines) -> None:
 def cmd_render(args) -> int:
     from .dataset import write_dataset
 
-    cfg = load_rig(args.rig)
+    cfg = _renderable(load_rig(args.rig))
     out = Path(args.out or Path("out") / cfg.name)
     with locked(out), progress_bar() as bar:
         task = bar.add_task(f"render {cfg.name}", total=None)
@@ -47,6 +49,16 @@ def cmd_render(args) -> int:
     _warn(ds.warnings)
     console.print(f"wrote {ds.frames} frames x {len(ds.cameras)} cameras to {out}")
     return 0
+
+
+def _renderable(cfg):
+    """``cfg``, once its renderer can run: the Blender backend's worker environment is checked
+    before anything is written (WorkerUnavailable says how to build it)."""
+    if cfg.renderer.kind == "blender":
+        from .render.blender.environment import require
+
+        require()
+    return cfg
 
 
 def _named(source, fn, *args):
@@ -130,7 +142,7 @@ def cmd_run(args) -> int:
     from .plots import plot_run
     from .report import run_title
 
-    cfg = load_rig(args.rig)
+    cfg = _renderable(load_rig(args.rig))
     out = Path(args.out or Path("out") / cfg.name)
     with locked(out):  # the whole command: trials, report and plots come from one run
         trials = _run(cfg, out, args, args.rig)
@@ -456,7 +468,28 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run on the Dask cluster of this running scheduler (tcp://HOST:PORT) "
                         "instead of an embedded one; its workers run one thread each")
     w.set_defaults(func=cmd_sweep)
+
+    b = sub.add_parser("blender-setup", help="build the Blender worker environment",
+                       description="Create the environment the Blender backend and the 2D pose "
+                                   "detector run in (bpy 5.0.1, mediapipe 0.10.21, numpy<2; "
+                                   "about 2 GB from PyPI) at $SYNTHCAL_BLENDER_ENV or inside "
+                                   "this environment (docs/photoreal.md).")
+    b.add_argument("--check", action="store_true",
+                   help="only say whether it is built (exit 1 if not)")
+    b.set_defaults(func=cmd_blender_setup)
     return p
+
+
+def cmd_blender_setup(args) -> int:
+    from .render.blender import environment
+
+    reason = environment.status()
+    if args.check or reason is None:
+        console.print(reason or f"the Blender worker environment is ready: "
+                                f"{environment.location()}", markup=False)
+        return 1 if reason else 0
+    environment.build(lambda what: console.print(what + " ...", markup=False))
+    return 0
 
 
 def main(argv=None) -> int:
@@ -468,7 +501,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (ConfigError, FileNotFoundError, ValueError) as e:
+    except (ConfigError, FileNotFoundError, ValueError, WorkerUnavailable, WorkerError) as e:
         say("error", "red", str(e))
         return 2
     except OSError as e:  # a full disk, a permission, a name the file system refuses
