@@ -4,7 +4,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test venv clean mrcal-env bench-deps
+.PHONY: demo test venv clean mrcal-env bench-deps blender
 
 $(BIN)/stereo-bench: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -27,6 +27,12 @@ MRCAL_PYTHON ?= $(firstword $(foreach v,3.12 3.13,$(shell ls $(HOME)/.pyenv/vers
 # imports (benchmarks/triangulation_speed.py says so and skips that peer without it).
 bench-deps: venv
 	$(BIN)/python -m pip install --quiet "jax[cpu]==0.10.2"
+
+# The Blender worker environment (bpy 5.0.1, mediapipe 0.10.21, numpy<2; about 2 GB): the
+# photoreal backend and the 2D pose detector run there (docs/photoreal.md). Without it their
+# tests skip, saying why.
+blender: venv
+	$(BIN)/stereo-bench blender-setup
 
 mrcal-env:
 	@if [ -z "$(MRCAL_PYTHON)" ]; then echo "no python3.12+ found: mrcal tests will skip"; exit 0; fi; \
