@@ -28,6 +28,7 @@ from stereo_bench.cli import say
 from stereo_bench.pipeline import Trial, load_run
 from stereo_bench.render.blender.client import WorkerError
 from stereo_bench.render.blender.environment import WorkerUnavailable
+from stereo_bench.html_report import provenance, write_html
 from stereo_bench.rundir import RunPaths, is_safe_name, locked, write_json, write_text
 
 from .body import NUM_JOINTS, load_body_model
@@ -413,15 +414,22 @@ def _rendered_keypoints(cameras, scene, model, out: Path, args):
 
 
 def write_outputs(results: dict, examples: dict, out: Path) -> None:
-    """results.json, report.md, mpjpe.png and skeleton.png (the chosen method, trial 0)."""
+    """results.json, report.md, mpjpe.png, skeleton.png (the chosen method, trial 0) and
+    report.html (all of it in one page)."""
     write_json(out / "results.json", results)
-    write_text(out / "report.md", markdown(results))
+    text = markdown(results)
+    write_text(out / "report.md", text)
     plot_mpjpe(results, out / "mpjpe.png")
+    figures = [out / "mpjpe.png"]
     shown = next((m for m in examples if m != "gt"), "gt")
     if shown in examples:
         stage = dict(STAGES)[headline_stage(results)]
         plot_skeleton(*examples[shown], out / "skeleton.png",
                       f"{shown} ({stage}), frame {results['settings']['frames'] // 2}")
+        figures.append(out / "skeleton.png")
+    write_html(out / "report.html", f"pose-eval: {results['rig']}", text, figures,
+               provenance(seeds=[results["settings"]["seed"]]),
+               json.dumps(results["settings"], indent=2), methods=list(results["methods"]))
 
 
 def main(argv=None) -> int:
@@ -442,7 +450,7 @@ def main(argv=None) -> int:
     console.print(markdown(results), markup=False, soft_wrap=True, highlight=False)
     for w in results["warnings"]:
         say("warning", "yellow", w)
-    console.print(f"wrote {out}/results.json, report.md, mpjpe.png, skeleton.png")
+    console.print(f"wrote {out}/results.json, report.md, report.html, mpjpe.png, skeleton.png")
     return 0
 
 

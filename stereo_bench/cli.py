@@ -11,6 +11,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.text import Text
 
 from .config import ConfigError, load_rig, parse_rig
+from .html_report import write_run_html
 from .rundir import locked
 from .render.blender.client import WorkerError
 from .render.blender.environment import WorkerUnavailable
@@ -133,8 +134,9 @@ def cmd_calibrate(args) -> int:
     out = Path(args.out or Path(args.dataset) / "calibration")
     with locked(out):
         trials = _run(cfg, out, args, args.dataset, first_dataset=base.root, with_rig=False)
-        _report(trials, out, run_title(base.config))
-    return _finish(trials, f"{out}/results.json, report.md; estimates in "
+        agg = _report(trials, out, run_title(base.config))
+        write_run_html(out, run_title(base.config), trials, agg, [], cfg)
+    return _finish(trials, f"{out}/results.json, report.md, report.html; estimates in "
                            f"{out}/trials/*/calibrations")
 
 
@@ -148,8 +150,9 @@ def cmd_run(args) -> int:
         trials = _run(cfg, out, args, args.rig)
         agg = _report(trials, out, run_title(cfg))
         plots = plot_run(out, trials, agg)
-    return _finish(trials, f"{out}/results.json, {out}/report.md and {len(plots)} plots in "
-                           f"{out}/plots")
+        write_run_html(out, run_title(cfg), trials, agg, plots, cfg)
+    return _finish(trials, f"{out}/results.json, {out}/report.md, {out}/report.html and "
+                           f"{len(plots)} plots in {out}/plots")
 
 
 #: Processes of a sweep's embedded cluster when --workers is not given.
@@ -265,6 +268,9 @@ def cmd_calibrate_images(args) -> int:
     from .capture import calibrate_capture, with_measured_diameter
     from .config import CalibrationConfig
     from .image_folders import ImageFolders
+    import yaml
+
+    from .html_report import provenance, write_html
     from .report import capture_markdown
     from .rundir import CapturePaths, write_text
 
@@ -289,9 +295,14 @@ def cmd_calibrate_images(args) -> int:
                                     progress=lambda d, n: bar.update(task, completed=d, total=n),
                                     notes_in=measured)
     paths = CapturePaths(out)
-    text = capture_markdown(results, f"Calibration of {', '.join(c.name for c in source.cameras)}"
-                                     f" from their images")
+    title = f"Calibration of {', '.join(c.name for c in source.cameras)} from their images"
+    text = capture_markdown(results, title)
     write_text(paths.report, text)
+    write_html(paths.html, title, text, [paths.root / p for p in results["plots"]], provenance(),
+               yaml.safe_dump({"cameras": args.cameras, "pattern": results["pattern"],
+                               "methods": methods, "folds": args.folds,
+                               "calibration": calibration.model_dump(mode="json")},
+                              sort_keys=False), methods=methods)
     console.print(text, markup=False, soft_wrap=True, highlight=False)
     _warn(results["warnings"] + results["notes"])
     done = [e for cams in results["calibration"].values() for e in cams.values()
@@ -299,7 +310,7 @@ def cmd_calibrate_images(args) -> int:
     if not done:
         say("error", "red", f"no camera could be calibrated with any method; wrote {out}")
         return 1
-    console.print(f"wrote {paths.results}, {paths.report}; estimates in "
+    console.print(f"wrote {paths.results}, {paths.report}, {paths.html}; estimates in "
                   f"{paths.trial.all_calibrations}", markup=False, highlight=False)
     return 0
 

@@ -68,10 +68,15 @@ def render_settings(cfg: RigConfig, rig: Rig, cam: Camera) -> RenderSettings:
 
 
 def dataset_fingerprint(cfg: RigConfig) -> str:
-    """What a dataset depends on: the resolved configuration (seed included) and the format;
-    not the calibration settings, which only the later stages read."""
-    return fingerprint("dataset", SCHEMA_VERSION,
-                       cfg.model_dump(mode="json", exclude={"calibration"}))
+    """What a dataset depends on: the resolved configuration (seed included) and the format,
+    and for the Blender backend the worker's packages; not the calibration settings, which
+    only the later stages read."""
+    parts = ["dataset", SCHEMA_VERSION, cfg.model_dump(mode="json", exclude={"calibration"})]
+    if cfg.renderer.kind == "blender":
+        from .render.blender.environment import REQUIREMENTS
+
+        parts.append(list(REQUIREMENTS))
+    return fingerprint(*parts)
 
 
 @contextlib.contextmanager

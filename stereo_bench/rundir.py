@@ -4,7 +4,7 @@ the lock that gives a run directory one writer at a time.
 Layout (the one place it is spelled out; docs/run_directory.md describes it for users)::
 
     RUN/.lock                                  held while a command writes into RUN
-    RUN/results.json, RUN/report.md, RUN/plots/*.png
+    RUN/results.json, RUN/report.md, RUN/report.html, RUN/plots/*.png
     RUN/trials/seed_<s>/dataset/               a rendered dataset (layout: DatasetPaths)
     RUN/trials/seed_<s>/detections/<camera>.npz, detections/done.json
     RUN/trials/seed_<s>/calibrations/<method>/<camera>.json | .yaml | _views.npz
@@ -14,7 +14,7 @@ Layout (the one place it is spelled out; docs/run_directory.md describes it for 
 A real capture's folder (``CapturePaths``, written by ``stereo-bench calibrate-images``) is one
 trial's layout at its top, beside the run's files::
 
-    OUT/.lock, OUT/results.json, OUT/report.md, OUT/plots/*.png
+    OUT/.lock, OUT/results.json, OUT/report.md, OUT/report.html, OUT/plots/*.png
     OUT/frames.json                            the images of each frame, per camera
     OUT/detections/..., OUT/calibrations/..., OUT/rig/<method>.json   (as a trial's)
     OUT/export/<format>/<method>/...           exchange files (stereo-bench export)
@@ -340,6 +340,11 @@ class RunPaths:
         return self.root / "report.md"
 
     @property
+    def html(self) -> Path:
+        """The self-contained page of the report (html_report.py)."""
+        return self.root / "report.html"
+
+    @property
     def plots(self) -> Path:
         return self.root / "plots"
 
@@ -372,6 +377,10 @@ class CapturePaths:
     @property
     def report(self) -> Path:
         return RunPaths(self.root).report
+
+    @property
+    def html(self) -> Path:
+        return RunPaths(self.root).html
 
     @property
     def plots(self) -> Path:

@@ -54,6 +54,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from .config import (ConfigError, EnvironmentKind, Int, Name, PatternKind, RigConfig, describe,
                      load_rig, load_yaml)
+from .html_report import provenance, write_html, write_run_html
 from .report import fmt, run_title, write_report
 from .rundir import is_safe_name, locked, write_json, write_text
 
@@ -451,7 +452,8 @@ def _run_config(args) -> dict:
         with locked(out):
             results = run(cfg, Path(out), methods, trials)
             agg = write_report(Path(out), results, run_title(cfg))
-            plot_run(Path(out), results, agg)
+            write_run_html(Path(out), run_title(cfg), results, agg,
+                           plot_run(Path(out), results, agg), cfg)
         return {"name": cfg.name, "aggregate": agg,
                 "per_trial": [trial_values(t) for t in results],
                 "wall_time_s": time.perf_counter() - t0}
@@ -582,7 +584,12 @@ def run_sweep(sweep: Sweep, out: Path, workers: int = 1, progress=None,
         for curve in result["curves"]:
             plot_sweep_curve(curve, out / curve["figure"])
         write_json(out / "sweep.json", result)
-        write_text(out / "sweep.md", sweep_markdown(result) + stats_markdown(result))
+        text = sweep_markdown(result) + stats_markdown(result)
+        write_text(out / "sweep.md", text)
+        write_html(out / "sweep.html", result["name"], text,
+                   [out / curve["figure"] for curve in result["curves"]], provenance(),
+                   Path(result["grid_file"]).read_text() if Path(result["grid_file"]).is_file()
+                   else None, methods=result["methods"])
     return result
 
 
