@@ -174,18 +174,46 @@ def markdown(results: dict) -> str:
 
 
 def plot_mpjpe(results: dict, path) -> None:
-    """Bar chart of the headline MPJPE per method, with ± std error bars."""
+    """What each calibration costs: left, the floor (gt's MPJPE, the keypoints alone); right,
+    each method's cost (its MPJPE minus gt's on the same keypoints of the same trial) as its
+    mean with every trial's value, on a log scale when the costs differ by decades."""
     stage = headline_stage(results)
-    names = list(results["methods"])
-    summaries = [m.get(stage, {}).get("mpjpe_mm", {"mean": math.nan, "std": math.nan})
-                 for m in results["methods"].values()]
-    fig, ax = plt.subplots(figsize=(1.2 * len(names) + 2, 3.5))
+    methods = {n: m for n, m in results["methods"].items() if n != "gt"}
+    floor = results["methods"].get("gt", {}).get(stage, {}).get("mpjpe_mm", {})
+    fig, (left, right) = plt.subplots(1, 2, figsize=(2.6 + 1.1 * max(len(methods), 1), 3.6),
+                                      gridspec_kw={"width_ratios": [1, max(len(methods), 1)]})
+    left.bar([0], [floor.get("mean", math.nan)], color="0.6")
+    left.bar_label(left.containers[0], labels=[f"{floor.get('mean', math.nan):.1f}"],
+                   fontsize=8)
+    left.set_xticks([0], ["gt"])
+    left.set_ylabel(f"MPJPE mm ({dict(STAGES)[stage]})")
+    left.set_title("floor: true cameras", fontsize=9)
+    names = list(methods)
+    means, trial_costs = [], []
+    for name, m in methods.items():
+        means.append(m.get(stage, {}).get(COST, {}).get("mean", math.nan))
+        entries = [t["methods"].get(name, {}) for t in results.get("trials", [])]
+        trial_costs.append([e[stage][COST] for e in entries
+                            if stage in e and e[stage].get(COST) is not None])
     x = np.arange(len(names))
-    ax.bar(x, [s["mean"] for s in summaries], yerr=[s["std"] for s in summaries], capsize=4,
-           color=["0.6" if n == "gt" else "C0" for n in names])
-    ax.set_xticks(x, names)
-    ax.set_ylabel(f"MPJPE mm ({dict(STAGES)[stage]})")
-    ax.set_title(f"{results['rig']} ({results['environment']})")
+    shown = np.abs(np.array(means, float))
+    if names:
+        bars = right.bar(x, shown, color="C0", alpha=0.8)
+        right.bar_label(bars, labels=[f"{v:+.3g}" for v in means], fontsize=8)
+        for i, costs in enumerate(trial_costs):
+            right.plot(np.full(len(costs), x[i]), np.abs(costs), "k.", ms=4,
+                       label="each trial" if i == 0 and costs else None)
+        positive = shown[np.isfinite(shown) & (shown > 0)]
+        if len(positive) > 1 and positive.max() >= 10 * positive.min():
+            right.set_yscale("log")
+        right.margins(y=0.2)
+        if any(trial_costs):
+            right.legend(fontsize=7)
+    right.set_xticks(x, names, rotation=20)
+    right.set_ylabel("|cost| mm (MPJPE minus gt's, paired)")
+    right.set_title("each calibration's cost", fontsize=9)
+    fig.suptitle(f"{results['rig']} ({results['environment']}), "
+                 f"{results['settings']['trials']} trial(s)", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

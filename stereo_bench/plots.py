@@ -1,8 +1,10 @@
 """Plots of a run a person would rather look at than read (matplotlib, Agg backend).
 
-* ``metrics.png``: per-method bars with error bars over trials (RPE_RMS, projection
+* ``metrics.png``: per-method bars with their values, on a log scale where methods differ by
+  decades, error bars over trials when there are several (RPE_RMS, projection
   difference, RMSE_cal);
-* ``residuals.png``: the distribution of reprojection residuals per method (first trial);
+* ``residuals.png``: the distribution of reprojection residuals per method, a panel per camera
+  (first trial);
 * ``trajectory.png``: the board's path and the cameras in 3D;
 * ``studio.png`` (session trajectories): the studio from above with the board's path, and
   which camera detected the board in which frame;
@@ -35,11 +37,21 @@ from .rig import ground_axes, world_up  # noqa: E402
 from .rundir import RunPaths, TrialPaths  # noqa: E402
 
 
-def _bars(ax, agg_rows: dict, column: str, title: str) -> None:
+def _bars(ax, agg_rows: dict, column: str, title: str, trials: int) -> None:
+    """One metric per method: bars with their value written on them, on a log scale when the
+    methods differ by a decade or more (Bouguet's 0.02 px beside Zhang's 18 px), with the std
+    over trials as error bars only when there is more than one trial."""
     names = list(agg_rows)
     mean = [agg_rows[n][column]["mean"] for n in names]
     std = [agg_rows[n][column]["std"] for n in names]
-    ax.bar(range(len(names)), mean, yerr=std, capsize=4, color="tab:blue", alpha=0.8)
+    shown = [np.nan if m is None else m for m in mean]
+    bars = ax.bar(range(len(names)), shown, yerr=std if trials > 1 else None, capsize=4,
+                  color="tab:blue", alpha=0.8)
+    ax.bar_label(bars, labels=["failed" if m is None or not np.isfinite(m) else f"{m:.3g}"
+                               for m in mean], fontsize=7, padding=2)
+    if _spans_decades(shown):
+        ax.set_yscale("log")
+    ax.margins(y=0.15)
     ax.set_xticks(range(len(names)), names, rotation=30, ha="right", fontsize=8)
     ax.set_title(title, fontsize=9)
 
@@ -58,47 +70,56 @@ def plot_metrics(agg: dict, path: Path) -> Path:
     for cam in cams:
         rows = {m: agg["calibration"][m][cam] for m in agg["calibration"]}
         for column, title in panels:
-            _bars(axes[i], rows, column, f"{cam}: {title}")
+            _bars(axes[i], rows, column, f"{cam}: {title}", agg["trials"])
             i += 1
     if "rig" in agg:
-        _bars(axes[i], agg["rig"], "RMSE_cal mm", "RMSE_cal (mm)")
-    fig.suptitle(f"mean ± std over {agg['trials']} trial(s)", fontsize=9)
+        _bars(axes[i], agg["rig"], "RMSE_cal mm", "RMSE_cal (mm)", agg["trials"])
+    fig.suptitle(f"mean ± std over {agg['trials']} trials (error bars)" if agg["trials"] > 1
+                 else "one trial: no spread to show (run --trials N for error bars)",
+                 fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
 
 
-def residuals(trial: TrialPaths, ds: Dataset, method: str) -> np.ndarray:
-    """Reprojection residual norms (px) of one method over all cameras and views of a trial."""
+def residuals(trial: TrialPaths, ds: Dataset, method: str, camera: Camera) -> np.ndarray:
+    """Reprojection residual norms (px) of one method and camera over the views of a trial."""
+    if not trial.calibration(method, camera.name).is_file():
+        return np.zeros(0)
+    est = Camera.load_json(trial.calibration(method, camera.name))
+    det = CameraDetections.load(trial.detection(camera.name))
     out = []
-    for cam in ds.cameras:
-        if not trial.calibration(method, cam.name).is_file():
-            continue
-        est = Camera.load_json(trial.calibration(method, cam.name))
-        det = CameraDetections.load(trial.detection(cam.name))
-        with np.load(trial.views(method, cam.name)) as z:
-            for f, r, t in zip(z["view_ids"], z["rvecs"], z["tvecs"]):
-                ok = np.isfinite(det.points[f]).all(1)
-                uv = project_points(ds.object_points[ok], est.intrinsics, est.dist, r, t)
-                out.append(np.linalg.norm(uv - det.points[f, ok], axis=1))
+    with np.load(trial.views(method, camera.name)) as z:
+        for f, r, t in zip(z["view_ids"], z["rvecs"], z["tvecs"]):
+            ok = np.isfinite(det.points[f]).all(1)
+            uv = project_points(ds.object_points[ok], est.intrinsics, est.dist, r, t)
+            out.append(np.linalg.norm(uv - det.points[f, ok], axis=1))
     return np.concatenate(out) if out else np.zeros(0)
 
 
 def plot_residuals(trial: TrialPaths, ds: Dataset, methods: list[str], path: Path) -> Path:
-    fig, ax = plt.subplots(figsize=(6, 3.6))
-    for m in methods:
-        r = residuals(trial, ds, m)
-        if len(r):
-            ax.hist(r, bins=np.geomspace(max(r.min(), 1e-4), r.max() + 1e-9, 60),
-                    histtype="step", label=f"{m} (RMS {np.sqrt(np.mean(r**2)):.3f})")
-    ax.set_xscale("log")
-    ax.set_xlabel("reprojection residual (px)")
-    ax.set_ylabel("points")
-    if ax.get_legend_handles_labels()[0]:
-        ax.legend(fontsize=8)
-    else:
-        ax.set_title("no method calibrated a camera", fontsize=9)
+    """The distribution of reprojection residuals per method, one panel per camera."""
+    cams = ds.cameras
+    cols = min(len(cams), 4)
+    lines = -(-len(cams) // cols)
+    fig, axes = plt.subplots(lines, cols, figsize=(5.2 * cols, 3.4 * lines), squeeze=False)
+    for ax in axes.ravel()[len(cams):]:
+        ax.set_visible(False)
+    for ax, cam in zip(axes.ravel(), cams):
+        for m in methods:
+            r = residuals(trial, ds, m, cam)
+            if len(r):
+                ax.hist(r, bins=np.geomspace(max(r.min(), 1e-4), r.max() + 1e-9, 60),
+                        histtype="step", label=f"{m} (RMS {np.sqrt(np.mean(r**2)):.3f})")
+        ax.set_xscale("log")
+        ax.set_xlabel("reprojection residual (px)")
+        ax.set_ylabel("points")
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
+            ax.set_title(f"{cam.name}", fontsize=9)
+        else:
+            ax.set_title(f"{cam.name}: no method calibrated it", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
@@ -223,25 +244,36 @@ def plot_projection_maps(trial: TrialPaths, ds: Dataset, methods: list[str],
         ests = {m: Camera.load_json(p) for m, p in ests.items() if p.is_file()}
         if not ests:
             continue
-        fig, axes = plt.subplots(1, len(ests), figsize=(3.6 * len(ests), 3.0), squeeze=False)
-        for ax, (m, est) in zip(axes[0], ests.items()):
-            diff = projection_difference_map(est, truth)
-            # Colour scale to the 99th percentile: a few corner pixels where an estimate's model
-            # breaks down would otherwise leave the rest of the map black. Grey: where the
-            # estimate is not valid (it folds or has a pole; left out of the statistics).
-            cmap = plt.get_cmap("magma").with_extremes(bad="0.6")
+        maps = {m: projection_difference_map(est, truth) for m, est in ests.items()}
+        # One colour scale for the figure, logarithmic from the smallest 1st to the largest 99th
+        # percentile: the same colour is the same error in every panel, and 0.05 px beside
+        # 18 px both stay readable (the 99th percentile keeps a few corner pixels where a model
+        # breaks down from setting the scale). Grey: where the estimate is not valid (it folds
+        # or has a pole; left out of the statistics).
+        finite = [d[np.isfinite(d) & (d > 0)] for d in maps.values()]
+        finite = [f for f in finite if f.size]
+        lo = max(min(np.percentile(f, 1) for f in finite), 1e-4) if finite else 1e-3
+        hi = max(max(np.percentile(f, 99) for f in finite), 1.01 * lo) if finite else 1.0
+        norm = matplotlib.colors.LogNorm(lo, hi, clip=True)
+        cmap = plt.get_cmap("magma").with_extremes(bad="0.6")
+        fig, axes = plt.subplots(1, len(ests), figsize=(3.6 * len(ests), 3.3), squeeze=False,
+                                 layout="constrained")
+        for ax, (m, diff) in zip(axes[0], maps.items()):
             valid = np.isfinite(diff)
-            vmax = np.percentile(diff[valid], 99) if valid.any() else 1.0
             im = ax.imshow(diff, extent=(0, cam.width - 1, cam.height - 1, 0), cmap=cmap,
-                           vmax=vmax)
+                           norm=norm)
             note = "" if valid.all() else f", {1 - valid.mean():.1%} invalid (grey)"
             title = (f"{m}: mean {np.nanmean(diff):.3g}, max {np.nanmax(diff):.3g} px{note}"
                      if valid.any() else f"{m}: invalid over the whole image")
             ax.set_title(title, fontsize=8)
+            ax.set_xlabel("u (px)", fontsize=7)
+            ax.set_ylabel("v (px)", fontsize=7)
             ax.tick_params(labelsize=6)
-            fig.colorbar(im, ax=ax, shrink=0.8).ax.tick_params(labelsize=6)
-        fig.suptitle(f"{cam.name}: |estimate - truth| projection difference (px)", fontsize=9)
-        fig.tight_layout()
+        bar = fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8)
+        bar.set_label("projection difference (px, log scale)", fontsize=7)
+        bar.ax.tick_params(labelsize=6)
+        fig.suptitle(f"{cam.name}: |estimate - truth| projection difference over the image",
+                     fontsize=9)
         path = folder / f"projection_difference_{cam.name}.png"
         fig.savefig(path, dpi=110)
         plt.close(fig)
