@@ -12,7 +12,7 @@ from rich.text import Text
 
 from .config import ConfigError, load_rig, parse_rig
 from .html_report import write_run_html
-from .rundir import locked
+from .rundir import locked, prepare_output
 from .render.blender.client import WorkerError
 from .render.blender.environment import WorkerUnavailable
 
@@ -480,6 +480,19 @@ def build_parser() -> argparse.ArgumentParser:
                         "instead of an embedded one; its workers run one thread each")
     w.set_defaults(func=cmd_sweep)
 
+    v = sub.add_parser("serve", help="the local web app: compose, preview, run, compare",
+                       description="Start the web app (docs/web.md) on this machine: compose a "
+                                   "rig in a form validated like a rig file, preview any "
+                                   "camera's frame and the trajectory, run it or sweep it with "
+                                   "live progress, open and compare the reports. It writes "
+                                   "only into --runs.")
+    v.add_argument("--runs", default="out/web", help="folder of the runs it starts and lists "
+                                                     "(default: %(default)s)")
+    v.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on (default: %(default)s, this machine only)")
+    v.add_argument("--port", type=int, default=8765, help="port (default: %(default)s)")
+    v.set_defaults(func=cmd_serve)
+
     b = sub.add_parser("blender-setup", help="build the Blender worker environment",
                        description="Create the environment the Blender backend and the 2D pose "
                                    "detector run in (bpy 5.0.1, mediapipe 0.10.21, numpy<2; "
@@ -489,6 +502,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="only say whether it is built (exit 1 if not)")
     b.set_defaults(func=cmd_blender_setup)
     return p
+
+
+def cmd_serve(args) -> int:
+    from .web.app import serve
+
+    if not 0 < args.port < 65536:
+        raise ValueError(f"--port: expected 1..65535, got {args.port}")
+    runs = prepare_output(args.runs, "--runs")
+    console.print(f"SynthCal at http://{args.host}:{args.port}/ (runs in {runs}); Ctrl-C stops",
+                  markup=False, highlight=False)
+    serve(runs, args.host, args.port)
+    return 0
 
 
 def cmd_blender_setup(args) -> int:

@@ -656,6 +656,15 @@ def load_yaml(path, what: str = "rig file"):
     except UnicodeDecodeError as e:
         raise ConfigError(f"{path}: not UTF-8 text (byte {e.start}); expected a {what} "
                           f"in YAML") from None
+    return parse_yaml(text, str(path), what)
+
+
+def parse_yaml(text: str, source: str, what: str = "rig file"):
+    """The data of YAML ``text`` (a file's, or a form's), or a ConfigError naming ``source``:
+    too large, not YAML, nested too deeply, or with a duplicate key."""
+    path = source
+    if len(text.encode("utf-8", "replace")) > MAX_FILE_BYTES:
+        raise ConfigError(f"{path}: a {what} is expected to be under {MAX_FILE_BYTES:,} bytes")
     if "\x00" in text:
         raise ConfigError(f"{path}: contains NUL characters; expected a {what} in YAML")
     try:

@@ -143,9 +143,9 @@ def _world_axes(cameras: list[Camera]) -> tuple[np.ndarray, list[str]]:
     return basis, [f"{n} (mm)" if n else "(mm)" for n in labels]
 
 
-def plot_trajectory(ds: Dataset, path: Path) -> Path:
-    rig = ds.rig()
-    basis, labels = _world_axes(ds.cameras)
+def plot_trajectory(rig, path: Path, session: bool = False) -> Path:
+    """The board's path and the cameras (``rig``: a rig.Rig, of a dataset or a rig file)."""
+    basis, labels = _world_axes(rig.cameras)
     pts = rig.board_points_world() @ basis.T
     fig = plt.figure(figsize=(6, 5))
     ax = fig.add_subplot(projection="3d")
@@ -156,7 +156,7 @@ def plot_trajectory(ds: Dataset, path: Path) -> Path:
         ax.plot(*pts[f][corners].T, color="gray", lw=0.6,
                 label="board diagonal (every few frames)" if i == 0 else None)
     scale = 0.15 * np.ptp(np.linalg.norm(centre - centre.mean(0), axis=1)) + 30
-    for i, cam in enumerate(ds.cameras):
+    for i, cam in enumerate(rig.cameras):
         c = cam.center
         w, h = cam.width - 1, cam.height - 1
         rays = cam.unproject_rays(np.array([[0, 0], [w, 0], [w, h], [0, h]], float))
@@ -171,7 +171,7 @@ def plot_trajectory(ds: Dataset, path: Path) -> Path:
     ax.set_xlabel(labels[0])
     ax.set_ylabel(labels[1])
     ax.set_zlabel(f"up: {labels[2]}")
-    kind = "calibration session" if ds.config.trajectory.kind == "session" else "conical spring"
+    kind = "calibration session" if session else "conical spring"
     ax.set_title(f"board trajectory ({kind}) and cameras", fontsize=9)
     ax.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
@@ -293,7 +293,8 @@ def plot_run(out: Path, trials: list[dict], agg: dict) -> list[Path]:
     methods = first["methods"]
     return [plot_metrics(agg, folder / "metrics.png"),
             plot_residuals(trial, ds, methods, folder / "residuals.png"),
-            plot_trajectory(ds, folder / "trajectory.png"),
+            plot_trajectory(ds.rig(), folder / "trajectory.png",
+                            ds.config.trajectory.kind == "session"),
             *([plot_studio(trial, ds, folder / "studio.png")]
               if ds.config.trajectory.kind == "session" else []),
             *plot_projection_maps(trial, ds, methods, folder)]

@@ -1,0 +1,142 @@
+"""The web app (`stereo-bench serve`), started as a user starts it, driven in Debian's chromium.
+
+The server is the real command in a subprocess on a free loopback port; the browser is
+Playwright's driver of /usr/bin/chromium (see tests/test_html_report.py for what skips without
+them). Screenshots go to $SYNTHCAL_SCREENSHOTS when set.
+"""
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from test_html_report import BROWSER, CHROMIUM, FLAGS, playwright
+
+pytestmark = pytest.mark.skipif(BROWSER is not None, reason=BROWSER or "")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    """(base URL, runs folder, seconds from the command to a page that answers)."""
+    runs = tmp_path_factory.mktemp("web") / "runs"
+    port = _free_port()
+    start = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-m", "stereo_bench.cli", "serve", "--runs",
+                             str(runs), "--port", str(port)], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    url = f"http://127.0.0.1:{port}"
+    while True:
+        try:
+            with urllib.request.urlopen(url + "/", timeout=1) as r:
+                if r.status == 200:
+                    break
+        except (urllib.error.URLError, ConnectionError, TimeoutError):
+            pass
+        if proc.poll() is not None:
+            pytest.fail(f"serve stopped: {proc.stdout.read()}")
+        if time.perf_counter() - start > 60:
+            proc.kill()
+            pytest.fail("serve did not answer within 60 s")
+        time.sleep(0.1)
+    ready = time.perf_counter() - start
+    yield url, runs, ready
+    proc.terminate()
+    proc.wait(timeout=10)
+
+
+def _post(url, body):
+    request = urllib.request.Request(url, json.dumps(body).encode(),
+                                     {"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(request) as r:
+            return r.status, json.loads(r.read())
+    except urllib.error.HTTPError as e:
+        return e.code, json.loads(e.read())
+
+
+def test_requests_cannot_write_or_read_outside_the_runs_folder(server):
+    url, runs, _ = server
+    with urllib.request.urlopen(url + "/api/example") as r:
+        example = json.loads(r.read())
+    for name in ("../escape", "/tmp/x", "a/b", ""):
+        status, answer = _post(url + "/api/runs", {"name": name, "config": example})
+        assert status == 422 and "name" in answer["errors"][0]
+    assert not (runs.parent / "escape").exists()
+    for path in ("/runs/..%2F..%2Fetc/passwd", "/runs/x/..%2F..%2F..%2Fetc%2Fpasswd"):
+        with pytest.raises(urllib.error.HTTPError) as e:
+            urllib.request.urlopen(url + path)
+        assert e.value.code == 404
+    status, answer = _post(url + "/api/validate", {"config": {**example, "seed": -1}})
+    assert status == 200 and not answer["ok"] and any("seed" in e for e in answer["errors"])
+
+
+def _shots(tmp_path) -> Path:
+    folder = Path(os.environ.get("SYNTHCAL_SCREENSHOTS") or tmp_path)
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def test_compose_preview_run_and_read_the_report(server, tmp_path):
+    url, runs, ready = server
+    print(f"serve: {ready:.2f} s from the command to a page that answers")
+    shots = _shots(tmp_path)
+    errors = []
+    with playwright.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
+        page = browser.new_page(viewport={"width": 1500, "height": 1000})
+        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(url + "/")
+        page.wait_for_function("document.querySelector('#p-image').naturalWidth > 0")
+        assert page.input_value("#f-name") == "quickstart"
+        # A bad value is refused with the rig file's own message, naming the field.
+        page.fill("#f-frames", "0")
+        page.dispatch_event("#f-frames", "change")
+        page.wait_for_selector("#errors li")
+        assert "trajectory.frames" in page.inner_text("#errors")
+        # A small rig: 8 frames, the second camera's frame 3 previewed.
+        page.fill("#f-frames", "8")
+        page.dispatch_event("#f-frames", "change")
+        page.wait_for_function("document.querySelector('#errors').children.length === 0")
+        page.wait_for_function("document.querySelector('#p-frame').max === '7'")
+        page.select_option("#p-camera", "1")
+        page.fill("#p-frame", "3")
+        page.dispatch_event("#p-frame", "change")
+        page.wait_for_function("document.querySelector('#p-info').textContent"
+                               ".includes('frame 4/8')")
+        page.wait_for_function("document.querySelector('#p-trajectory').naturalWidth > 0")
+        assert "frames: 8" in page.text_content("#yaml")  # the resolved rig file
+        page.screenshot(path=str(shots / "web_editor.png"), full_page=True)
+        page.fill("#r-name", "eight_frames")
+        page.click("#b-run")
+        # Live progress (a run of 8 frames may also be done before the first poll).
+        page.wait_for_selector(".job.running progress, .job.done", timeout=60_000)
+        page.locator("#run").screenshot(path=str(shots / "web_running.png"))
+        page.wait_for_selector(".job.done", timeout=300_000)
+        assert (runs / "eight_frames" / "report.html").is_file()
+        assert (runs / "eight_frames" / "rig.yaml").is_file()
+        with page.expect_popup() as popup:
+            page.click(".job.done a.report")
+        report = popup.value
+        report.wait_for_load_state("load")
+        sizes = report.eval_on_selector_all("figure img", "els => els.map(e => e.naturalWidth)")
+        assert sizes and min(sizes) > 100
+        report.screenshot(path=str(shots / "web_report.png"))
+        # Past runs list it; two runs side by side.
+        page.wait_for_selector("#run-list li a")
+        assert "eight_frames" in page.inner_text("#run-list")
+        browser.close()
+    assert not errors, errors
