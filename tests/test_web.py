@@ -138,5 +138,12 @@ def test_compose_preview_run_and_read_the_report(server, tmp_path):
         # Past runs list it; two runs side by side.
         page.wait_for_selector("#run-list li a")
         assert "eight_frames" in page.inner_text("#run-list")
+        page.goto(url + "/compare?a=eight_frames&b=eight_frames")
+        frames = page.frames
+        assert len(frames) == 3
+        for frame in frames[1:]:
+            frame.wait_for_load_state("load")
+            assert "quickstart" in frame.content()
+        page.screenshot(path=str(shots / "web_compare.png"))
         browser.close()
     assert not errors, errors
