@@ -68,11 +68,13 @@ function edited(e) {
   validate(next);
 }
 
+let asked = 0;  // validations sent: an answer to an older one is dropped (answers can cross)
 function validate(next) {
   clearTimeout(pending);
   pending = setTimeout(async () => {
+    const mine = ++asked;
     const answer = await post("/api/validate", {config: next ?? config});
-    show(answer);
+    if (mine === asked) show(answer);
   }, 150);
 }
 
