@@ -92,9 +92,12 @@ function show(answer) {
   return true;
 }
 
+let previews = 0;  // as for validations: only the newest preview is shown
 async function refreshPreview() {
   const camera = Number($("#p-camera").value || 0), frame = Number($("#p-frame").value || 0);
+  const mine = ++previews;
   const r = await post("/api/preview", {config, camera, frame}, true);
+  if (mine !== previews) return;
   if (r.ok) {
     $("#p-image").src = URL.createObjectURL(await r.blob());
     $("#p-info").textContent = `${r.headers.get("X-Camera")}, frame ${frame + 1}/` +
