@@ -71,11 +71,14 @@ def dataset_fingerprint(cfg: RigConfig) -> str:
     """What a dataset depends on: the resolved configuration (seed included) and the format,
     and for the Blender backend the worker's packages; not the calibration settings, which
     only the later stages read."""
-    parts = ["dataset", SCHEMA_VERSION, cfg.model_dump(mode="json", exclude={"calibration"})]
+    config = cfg.model_dump(mode="json", exclude={"calibration", "renderer"})
+    parts = ["dataset", SCHEMA_VERSION, config]
     if cfg.renderer.kind == "blender":
+        # The analytic renderer's datasets keep the fingerprints they had before there was a
+        # choice; Cycles' thread count does not change its pixels.
         from .render.blender.environment import REQUIREMENTS
 
-        parts.append(list(REQUIREMENTS))
+        parts += [cfg.renderer.model_dump(mode="json", exclude={"threads"}), list(REQUIREMENTS)]
     return fingerprint(*parts)
 
 
