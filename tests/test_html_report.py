@@ -83,6 +83,9 @@ def test_report_opens_from_disk_in_chromium(quick_run, tmp_path):
         sizes = page.eval_on_selector_all("figure img", "els => els.map(e => e.naturalWidth)")
         assert sizes and min(sizes) > 100
         page.screenshot(path=str(shots / "report.png"), full_page=False)
+        page.evaluate("document.evaluate(\"//h2[text()='Figures']\", document, null, 9, null)"
+                      ".singleNodeValue.scrollIntoView()")
+        page.screenshot(path=str(shots / "report_figures.png"))
         # Pointing at a method highlights it in every table.
         page.hover("td:text-is('bouguet')")
         lit = page.eval_on_selector_all(".hl", "els => els.map(e => e.dataset.method)")
