@@ -60,7 +60,7 @@ def test_every_report_gets_its_page(quick_run):
     assert "quickstart" in page  # the resolved rig file
 
 
-def _screenshot_dir(tmp_path) -> Path:
+def screenshot_dir(tmp_path) -> Path:
     folder = Path(os.environ.get("SYNTHCAL_SCREENSHOTS") or tmp_path)
     folder.mkdir(parents=True, exist_ok=True)
     return folder
@@ -68,7 +68,7 @@ def _screenshot_dir(tmp_path) -> Path:
 
 @pytest.mark.skipif(BROWSER is not None, reason=BROWSER or "")
 def test_report_opens_from_disk_in_chromium(quick_run, tmp_path):
-    shots = _screenshot_dir(tmp_path)
+    shots = screenshot_dir(tmp_path)
     errors = []
     with playwright.sync_playwright() as p:
         browser = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS)

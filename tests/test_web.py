@@ -6,18 +6,16 @@ them). Screenshots go to $SYNTHCAL_SCREENSHOTS when set.
 """
 
 import json
-import os
 import socket
 import subprocess
 import sys
 import time
 import urllib.error
 import urllib.request
-from pathlib import Path
 
 import pytest
 
-from test_html_report import BROWSER, CHROMIUM, FLAGS, playwright
+from test_html_report import BROWSER, CHROMIUM, FLAGS, playwright, screenshot_dir
 
 pytestmark = pytest.mark.skipif(BROWSER is not None, reason=BROWSER or "")
 
@@ -83,16 +81,10 @@ def test_requests_cannot_write_or_read_outside_the_runs_folder(server):
     assert status == 200 and not answer["ok"] and any("seed" in e for e in answer["errors"])
 
 
-def _shots(tmp_path) -> Path:
-    folder = Path(os.environ.get("SYNTHCAL_SCREENSHOTS") or tmp_path)
-    folder.mkdir(parents=True, exist_ok=True)
-    return folder
-
-
 def test_compose_preview_run_and_read_the_report(server, tmp_path):
     url, runs, ready = server
     print(f"serve: {ready:.2f} s from the command to a page that answers")
-    shots = _shots(tmp_path)
+    shots = screenshot_dir(tmp_path)
     errors = []
     with playwright.sync_playwright() as p:
         browser = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
