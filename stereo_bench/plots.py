@@ -9,7 +9,8 @@
 * ``studio.png`` (session trajectories): the studio from above with the board's path, and
   which camera detected the board in which frame;
 * ``projection_difference_<camera>.png``: the map over the image of how far each method's
-  estimate projects the true camera's rays.
+  estimate projects the true camera's rays;
+* ``views_<camera>.png``: what a real capture's figure shows, for one estimate (below).
 
 A real capture (``plot_capture``) has no truth; per camera, ``capture_<camera>.png`` shows one
 method's RPE per view (flagged views in red), its residual vectors over the image, the image's
@@ -281,6 +282,48 @@ def plot_projection_maps(trial: TrialPaths, ds: Dataset, methods: list[str],
     return paths
 
 
+def plot_views(trial: TrialPaths, ds: Dataset, methods: list[str], folder: Path) -> list[Path]:
+    """``views_<camera>.png``: the capture figure (``plot_capture_camera``: RPE per view with
+    the outlier views in red, residual vectors over the image, coverage, projection
+    uncertainty) for each camera's estimate by ``opencv`` (else the first method that
+    calibrated it), from the trial's saved detections and views."""
+    from .calibrate import get_calibrator
+    from .calibrate.base import CalibrationResult
+    from .diagnostics import coverage, view_outliers
+    from .evaluate import Estimate, observations
+    from .uncertainty import projection_uncertainty
+
+    paths = []
+    for cam in ds.cameras:
+        done = [m for m in methods if trial.calibration(m, cam.name).is_file()]
+        if not done:
+            continue
+        method = "opencv" if "opencv" in done else done[0]
+        est = Camera.load_json(trial.calibration(method, cam.name))
+        det = CameraDetections.load(trial.detection(cam.name))
+        with np.load(trial.views(method, cam.name)) as z:
+            view_ids, rvecs, tvecs = z["view_ids"], z["rvecs"], z["tvecs"]
+        frames = np.isin(np.arange(ds.frames), view_ids)
+        obs, _ = observations(det, ds.object_points, cam, frames)
+        if list(obs.view_ids) != [int(v) for v in view_ids]:
+            continue  # the views saved are not the detections' (a stale pair): no figure
+        entry = {"diagnostics": {"views": view_outliers(est, obs, rvecs, tvecs),
+                                 "coverage": coverage(obs)}}
+        params = get_calibrator(method).model_parameters
+        if params is not None:
+            try:
+                entry["uncertainty"] = {"projection": projection_uncertainty(
+                    est, obs, rvecs, tvecs, params)}
+            except (ValueError, np.linalg.LinAlgError):
+                pass  # the panel says there is none
+        results = {"methods": [method], "calibration": {method: {cam.name: entry}}}
+        path = folder / f"views_{cam.name}.png"
+        plot_capture_camera(results, Estimate(CalibrationResult(est, rvecs, tvecs), obs),
+                            [f"frame {f}" for f in range(ds.frames)], path)
+        paths.append(path)
+    return paths
+
+
 def plot_run(out: Path, trials: list[dict], agg: dict) -> list[Path]:
     """Every plot of a run; the per-trial ones use the first trial."""
     folder = Path(out) / "plots"
@@ -297,7 +340,8 @@ def plot_run(out: Path, trials: list[dict], agg: dict) -> list[Path]:
                             ds.config.trajectory.kind == "session"),
             *([plot_studio(trial, ds, folder / "studio.png")]
               if ds.config.trajectory.kind == "session" else []),
-            *plot_projection_maps(trial, ds, methods, folder)]
+            *plot_projection_maps(trial, ds, methods, folder),
+            *plot_views(trial, ds, methods, folder)]
 
 
 def primary_method(results: dict, camera: str) -> str | None:
