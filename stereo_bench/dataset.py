@@ -7,6 +7,7 @@ Layout (documented in docs/dataset_format.md; paths built by ``rundir.DatasetPat
     DIR/config.yaml                 the resolved rig configuration (re-render with it)
     DIR/pattern.png                 the board texture
     DIR/timing.json                 how long the render took (the only file that varies)
+    DIR/blender/<camera>_texture.png  the print Blender rendered (renderer.kind blender only)
     DIR/ground_truth/*.npy          K (C,3,3), dist (C,8), cam_from_world_{rvec,tvec} (C,3),
                                     world_from_board_{rvec,tvec} (F,3), object_points (N,3)
                                     (the pattern's, given to the calibrations), board_points
