@@ -720,9 +720,11 @@ def _measure_discs(gray, points: np.ndarray, affines: np.ndarray, pattern, diame
             disc_y, disc_x = np.nonzero(disc)
             w = weight[disc]
             refined[i] = (cx + w @ ox[disc_x] / w.sum(), cy + w @ oy[disc_y, 0] / w.sum())
+        if not np.isfinite(refined[i]).all():
+            continue  # its window left the image or the print (possibly before the first pass)
         core = (radius2 < (0.5 * r_disc) ** 2) & inside
         whole = radius2 < r_inner**2
-        if np.isfinite(refined[i]).all() and core.any() and not (whole & ~inside).any():
+        if core.any() and not (whole & ~inside).any():
             contrast = np.median(weight[core])
             area_px = weight[whole].sum() / contrast
             diameters[i] = 2 * math.sqrt(area_px * abs(np.linalg.det(A_inv)) / math.pi)

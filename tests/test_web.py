@@ -130,6 +130,21 @@ def test_compose_preview_run_and_read_the_report(server, tmp_path):
         # Past runs list it; two runs side by side.
         page.wait_for_selector("#run-list li a")
         assert "eight_frames" in page.inner_text("#run-list")
+        # Save the YAML, load it back under another name, sweep it over two noise levels.
+        with page.expect_download() as saved:
+            page.click("#b-save")
+        rig = tmp_path / "saved.yaml"
+        saved.value.save_as(rig)
+        assert "frames: 8" in rig.read_text()
+        rig.write_text(rig.read_text().replace("name: quickstart", "name: loaded_rig", 1))
+        page.set_input_files("#f-load", str(rig))
+        page.wait_for_function("document.querySelector('#f-name').value === 'loaded_rig'")
+        page.fill("#r-name", "two_noises")
+        page.fill("#s-axes", "environment.sensor.noise_sigma: [0, 4]")
+        page.click("#b-sweep")
+        page.wait_for_selector("#job-2.done", timeout=300_000)
+        assert (runs / "two_noises" / "sweep.html").is_file()
+        assert len(list(runs.glob("two_noises/*/report.html"))) == 2
         page.goto(url + "/compare?a=eight_frames&b=eight_frames")
         frames = page.frames
         assert len(frames) == 3
