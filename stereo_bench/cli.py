@@ -524,7 +524,7 @@ def cmd_blender_setup(args) -> int:
         console.print(reason or f"the Blender worker environment is ready: "
                                 f"{environment.location()}", markup=False)
         return 1 if reason else 0
-    environment.build(lambda what: console.print(what + " ...", markup=False))
+    environment.build(lambda what: console.print(what, markup=False))
     return 0
 
 

@@ -85,7 +85,7 @@ def build(progress=print) -> Path:
              ([str(python()), "-m", "pip", "install", "--progress-bar", "off", *REQUIREMENTS],
               "installing " + ", ".join(REQUIREMENTS) + " (about 2 GB)")]
     for command, what in steps:
-        progress(what)
+        progress(what + " ...")
         done = subprocess.run(command, capture_output=True, text=True)
         if done.returncode != 0:
             tail = "\n".join((done.stdout + done.stderr).strip().splitlines()[-8:])
