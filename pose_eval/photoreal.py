@@ -76,12 +76,6 @@ def vertex_colors(lbs_weights: np.ndarray) -> np.ndarray:
     return np.array([_PART_COLORS[part_of[j]] for j in strongest])
 
 
-def _cam_from_world(camera: Camera) -> np.ndarray:
-    M = np.eye(4)
-    M[:3, :3], M[:3, 3] = camera.R, camera.tvec
-    return M
-
-
 def _floor(scene: Scene, cameras: list[Camera]) -> dict:
     """A square floor under the body's feet, reaching past every camera (world m)."""
     R, t = scene.world_from_body
@@ -112,7 +106,7 @@ def render_body(cameras: list[Camera], scene: Scene, lbs_weights: np.ndarray, ou
         worker.request("body", samples=samples, background=BACKGROUND, ambient=0.35,
                        faces=str(scratch / "faces.npy"), colors=str(scratch / "colors.npy"),
                        vertices=str(scratch / "vertices.npy"), floor=_floor(scene, cameras),
-                       cameras={c.name: views[c.name].spec(_cam_from_world(c)) for c in cameras},
+                       cameras={c.name: views[c.name].spec() for c in cameras},
                        sun_direction=sun.tolist(), sun_strength=3.0)
         for f in range(frames):
             pinholes = {c.name: str(scratch / f"{c.name}.png") for c in cameras}

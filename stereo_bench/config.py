@@ -662,11 +662,10 @@ def load_yaml(path, what: str = "rig file"):
 def parse_yaml(text: str, source: str, what: str = "rig file"):
     """The data of YAML ``text`` (a file's, or a form's), or a ConfigError naming ``source``:
     too large, not YAML, nested too deeply, or with a duplicate key."""
-    path = source
     if len(text.encode("utf-8", "replace")) > MAX_FILE_BYTES:
-        raise ConfigError(f"{path}: a {what} is expected to be under {MAX_FILE_BYTES:,} bytes")
+        raise ConfigError(f"{source}: a {what} is expected to be under {MAX_FILE_BYTES:,} bytes")
     if "\x00" in text:
-        raise ConfigError(f"{path}: contains NUL characters; expected a {what} in YAML")
+        raise ConfigError(f"{source}: contains NUL characters; expected a {what} in YAML")
     try:
         # Composing is iterative in PyYAML; only the nesting check below stands between a
         # 10,000-deep document and a RecursionError in the constructor.
@@ -674,7 +673,7 @@ def parse_yaml(text: str, source: str, what: str = "rig file"):
         if node is None:
             return None
         if _depth(node, MAX_NESTING) > MAX_NESTING:
-            raise ConfigError(f"{path}: nested more than {MAX_NESTING} levels deep; expected a "
+            raise ConfigError(f"{source}: nested more than {MAX_NESTING} levels deep; expected a "
                               f"{what}")
         loader = _UniqueKeyLoader(text)
         try:
@@ -682,9 +681,9 @@ def parse_yaml(text: str, source: str, what: str = "rig file"):
         finally:
             loader.dispose()
     except yaml.YAMLError as e:
-        raise ConfigError(f"{path}: not valid YAML ({e})") from None
+        raise ConfigError(f"{source}: not valid YAML ({e})") from None
     except RecursionError:
-        raise ConfigError(f"{path}: nested too deeply; expected a {what}") from None
+        raise ConfigError(f"{source}: nested too deeply; expected a {what}") from None
 
 
 def load_rig(path) -> RigConfig:

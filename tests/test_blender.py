@@ -12,7 +12,6 @@ import sys
 import numpy as np
 import pytest
 
-from stereo_bench.camera import Camera
 from stereo_bench.config import ConfigError, parse_rig
 from stereo_bench.dataset import render_settings, write_dataset
 from stereo_bench.detect import detect, detect_dataset, detection_errors
@@ -54,11 +53,9 @@ def test_pinhole_view_sees_every_ray_and_remaps_exactly():
     view = PinholeView.of(cam)
     assert view.scale >= 1.0
     # Every pixel's ray lands inside the pinhole image, with room for the bilinear taps.
-    assert view.map_xy[..., 0].min() >= 1 and view.map_xy[..., 0].max() <= view.width - 2
-    assert view.map_xy[..., 1].min() >= 1 and view.map_xy[..., 1].max() <= view.height - 2
-    pinhole = Camera.from_dict({**cam.to_dict(), "fx": view.fx, "fy": view.fy, "cx": view.cx,
-                                "cy": view.cy, "width": view.width, "height": view.height,
-                                "dist": [0.0] * 8})
+    pinhole = view.pinhole
+    assert view.map_xy[..., 0].min() >= 1 and view.map_xy[..., 0].max() <= pinhole.width - 2
+    assert view.map_xy[..., 1].min() >= 1 and view.map_xy[..., 1].max() <= pinhole.height - 2
     settings = dataclasses.replace(render_settings(cfg, rig, cam), supersampling=4)
     renderer = AnalyticRenderer(pinhole, rig.pattern, settings)
     R, t = rig.cam_from_board(cam)

@@ -60,6 +60,17 @@ def test_every_report_gets_its_page(quick_run):
     assert "quickstart" in page  # the resolved rig file
 
 
+def open_page(p, width: int, height: int):
+    """(browser, page, errors): chromium with a page whose console errors and uncaught
+    exceptions are collected in ``errors``."""
+    browser = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
+    page = browser.new_page(viewport={"width": width, "height": height})
+    errors = []
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    return browser, page, errors
+
+
 def screenshot_dir(tmp_path) -> Path:
     folder = Path(os.environ.get("SYNTHCAL_SCREENSHOTS") or tmp_path)
     folder.mkdir(parents=True, exist_ok=True)
@@ -69,12 +80,8 @@ def screenshot_dir(tmp_path) -> Path:
 @pytest.mark.skipif(BROWSER is not None, reason=BROWSER or "")
 def test_report_opens_from_disk_in_chromium(quick_run, tmp_path):
     shots = screenshot_dir(tmp_path)
-    errors = []
     with playwright.sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
-        page = browser.new_page(viewport={"width": 1280, "height": 900})
-        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-        page.on("pageerror", lambda e: errors.append(str(e)))
+        browser, page, errors = open_page(p, 1280, 900)
         requests = []
         page.on("request", lambda r: requests.append(r.url))
         page.goto((quick_run / "report.html").resolve().as_uri())

@@ -15,7 +15,7 @@ import urllib.request
 
 import pytest
 
-from test_html_report import BROWSER, CHROMIUM, FLAGS, playwright, screenshot_dir
+from test_html_report import BROWSER, open_page, playwright, screenshot_dir
 
 pytestmark = pytest.mark.skipif(BROWSER is not None, reason=BROWSER or "")
 
@@ -85,12 +85,8 @@ def test_compose_preview_run_and_read_the_report(server, tmp_path):
     url, runs, ready = server
     print(f"serve: {ready:.2f} s from the command to a page that answers")
     shots = screenshot_dir(tmp_path)
-    errors = []
     with playwright.sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
-        page = browser.new_page(viewport={"width": 1500, "height": 1000})
-        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-        page.on("pageerror", lambda e: errors.append(str(e)))
+        browser, page, errors = open_page(p, 1500, 1000)
         page.goto(url + "/")
         page.wait_for_function("document.querySelector('#p-image').naturalWidth > 0")
         assert page.input_value("#f-name") == "quickstart"

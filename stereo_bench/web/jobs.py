@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import threading
 import time
-import traceback
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -97,14 +96,19 @@ class Jobs:
             job.state = "done"
         except Exception as e:  # noqa: BLE001 — reported to the page, the server goes on
             job.state, job.error = "failed", f"{type(e).__name__}: {e}"
-            job.stage = traceback.format_exc(limit=3).strip().splitlines()[-1]
         finally:
             job.finished = time.time()
 
-    def _progress(self, job: Job, stage_of):
+    @staticmethod
+    def _progress(job: Job, stages):
+        """progress(done, total) naming the stage: each time ``done`` starts again (the
+        pipeline counts frames once to render them, once to detect them), the next of
+        ``stages``."""
+        stages = iter(stages)
+
         def progress(done: int, total: int) -> None:
-            if done < job.done or not job.stage:  # a new pass: rendering, then detection
-                job.stage = stage_of(job.stage)
+            if done < job.done or job.total == 0:
+                job.stage = next(stages, job.stage)
             job.done, job.total = done, total
         return progress
 
@@ -114,13 +118,12 @@ class Jobs:
         from ..plots import plot_run
         from ..report import run_title, write_report
 
-        passes = iter(["rendering", "detecting"])
         with locked(out):
             write_text(out / "rig.yaml", yaml.safe_dump(cfg.model_dump(mode="json"),
                                                         sort_keys=False))
             job.stage = "starting"
             trial = run_trial(cfg, out, methods,
-                              progress=self._progress(job, lambda _: next(passes, "working")))
+                              progress=self._progress(job, ["rendering", "detecting"]))
             job.stage = "report"
             agg = write_report(out, [trial], run_title(cfg))
             write_run_html(out, run_title(cfg), [trial], agg, plot_run(out, [trial], agg), cfg)
@@ -137,5 +140,4 @@ class Jobs:
              "trials": trials}, sort_keys=False))
         sweep = load_grid(out / "grid.yaml")
         job.stage = "configurations"
-        run_sweep(sweep, out, workers=1,
-                  progress=self._progress(job, lambda _: "configurations"))
+        run_sweep(sweep, out, workers=1, progress=self._progress(job, ["configurations"]))

@@ -76,7 +76,8 @@ class BlenderRenderer:
                      "ambient": st.light.ambient}
         o = st.optics
         worker.request("board", samples=samples, texture=str(texture_path), extent_m=extent,
-                       camera=self.view.spec(f_number=o.f_number, focal_length_mm=o.focal_length_mm,
+                       camera=self.view.spec(in_world=False, f_number=o.f_number,
+                                             focal_length_mm=o.focal_length_mm,
                                              focus_mm=o.focus_distance_mm),
                        background=st.background / 255.0, light=light)
 

@@ -33,18 +33,13 @@ MARGIN_PX = 2  # pinhole pixels beyond the outermost ray: the bilinear taps stay
 
 @dataclass(frozen=True, eq=False)
 class PinholeView:
-    """A distortion-free camera (``width``, ``height``, ``fx``, ``fy``, ``cx``, ``cy``, OpenCV
-    pixel centres) that sees every ray of ``camera``, with the same orientation and centre;
-    ``map_xy`` (H, W, 2) float32: for each pixel of ``camera``, where its centre lies in this view;
-    ``map_du``, ``map_dv``: how far that moves per pixel along the camera's rows and columns."""
+    """``pinhole``: a distortion-free camera with ``camera``'s pose that sees every ray of
+    ``camera``'s image; ``map_xy`` (H, W, 2) float32: for each pixel of ``camera``, where its
+    centre lies in the pinhole image; ``map_du``, ``map_dv``: how far that moves per pixel along
+    the camera's rows and columns."""
 
     camera: Camera
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
+    pinhole: Camera
     map_xy: np.ndarray
     map_du: np.ndarray
     map_dv: np.ndarray
@@ -62,39 +57,42 @@ class PinholeView:
         lo, hi = inner.reshape(-1, 2).min(0), inner.reshape(-1, 2).max(0)
         cx = -lo[0] * fx + MARGIN_PX
         cy = -lo[1] * fy + MARGIN_PX
-        width = int(math.ceil(hi[0] * fx + cx)) + MARGIN_PX + 1
-        height = int(math.ceil(hi[1] * fy + cy)) + MARGIN_PX + 1
+        pinhole = camera.with_params(
+            width=int(math.ceil(hi[0] * fx + cx)) + MARGIN_PX + 1,
+            height=int(math.ceil(hi[1] * fy + cy)) + MARGIN_PX + 1,
+            fx=fx, fy=fy, cx=cx, cy=cy, skew=0.0, dist=np.zeros(8))
         to_view = np.array([fx, fy])
         map_xy = (inner * to_view + [cx, cy]).astype(np.float32)
         # Central differences over the rays' margin ring: centred at every pixel, edges included.
         map_du = (0.5 * (xy[1:-1, 2:] - xy[1:-1, :-2]) * to_view).astype(np.float32)
         map_dv = (0.5 * (xy[2:, 1:-1] - xy[:-2, 1:-1]) * to_view).astype(np.float32)
-        return cls(camera, width, height, fx, fy, cx, cy, map_xy, map_du, map_dv)
+        return cls(camera, pinhole, map_xy, map_du, map_dv)
 
     @property
     def scale(self) -> float:
-        return self.fx / self.camera.fx
+        return self.pinhole.fx / self.camera.fx
 
-    def spec(self, cam_from_world_mm: np.ndarray | None = None, f_number: float | None = None,
+    def spec(self, in_world: bool = True, f_number: float | None = None,
              focal_length_mm: float = 8.0, focus_mm: float | None = None) -> dict:
-        """The worker's camera description (metres; see worker.py). ``cam_from_world_mm``: 4x4,
-        identity when the scene is built in this camera's frame. The sensor's width follows
-        the lens: pixel pitch = focal_length_mm / fx, so Blender's depth of field is the thin
-        lens of the imaging model."""
-        M = np.eye(4) if cam_from_world_mm is None else np.array(cam_from_world_mm, float)
-        M = M.copy()
-        M[:3, 3] /= 1000.0
-        sensor_mm = self.width * focal_length_mm / self.fx
-        return {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy,
-                "cx": self.cx, "cy": self.cy, "cam_from_world": M.tolist(),
-                "sensor_mm": sensor_mm, "f_number": f_number,
+        """The worker's camera description (metres; see worker.py): at the camera's pose
+        (``in_world``), or at the origin of a scene built in this camera's frame. The sensor's
+        width follows the lens: pixel pitch = focal_length_mm / fx, so Blender's depth of field
+        is the thin lens of the imaging model."""
+        c = self.pinhole
+        M = np.eye(4)
+        if in_world:
+            M[:3, :3], M[:3, 3] = c.R, c.tvec / 1000.0
+        return {"width": c.width, "height": c.height, "fx": c.fx, "fy": c.fy, "cx": c.cx,
+                "cy": c.cy, "cam_from_world": M.tolist(),
+                "sensor_mm": c.width * focal_length_mm / c.fx, "f_number": f_number,
                 "focus_m": None if focus_mm is None else focus_mm / 1000.0}
 
     def distort(self, image: np.ndarray, border=0.0) -> np.ndarray:
         """The pinhole ``image`` (height, width[, channels]) seen through ``camera``'s lens:
         (camera.height, camera.width[, channels]), same dtype, ``border`` where no ray lands."""
-        if image.shape[:2] != (self.height, self.width):
-            raise ValueError(f"PinholeView.distort: expected a {self.width}x{self.height} image, "
+        c = self.pinhole
+        if image.shape[:2] != (c.height, c.width):
+            raise ValueError(f"PinholeView.distort: expected a {c.width}x{c.height} image, "
                              f"got {image.shape[1]}x{image.shape[0]}")
         source = image.astype(np.float32)
         total = None
