@@ -39,14 +39,13 @@ count is refused. c = 0 (OpenPose's "not detected") or a missing file means no d
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from stereo_bench.camera import Camera
-from stereo_bench.rundir import write_json
+from stereo_bench.rundir import UnreadableFileError, read_json, write_json
 
 from .body import NUM_JOINTS
 from .scene import Scene, in_view
@@ -222,8 +221,8 @@ def read_openpose(folder, cameras: list[Camera], frames: int | None = None) -> K
             if t >= frames:
                 continue
             try:
-                people = json.loads(path.read_text())["people"]
-            except (json.JSONDecodeError, KeyError, TypeError) as e:
+                people = read_json(path, "OpenPose JSON file")["people"]
+            except (UnreadableFileError, KeyError, TypeError) as e:
                 raise ValueError(f"{path}: expected OpenPose JSON with a 'people' list "
                                  f"({e})") from None
             if not people:

@@ -323,11 +323,16 @@ def cmd_export(args) -> int:
     estimates, where = estimates_of(args.source, args.method, args.seed)
     out = Path(args.out or CapturePaths(args.source).export(args.format, args.method))
     with locked(out):
-        written = write_estimates(estimates, args.format, out)
+        written, refused = write_estimates(estimates, args.format, out)
+    if not written:  # every estimate refused: the input, not the run, is at fault
+        raise ValueError("; ".join(f"{label}: {why}" if len(refused) > 1 else why
+                                   for label, why in refused.items()))
     console.print(f"{args.method}'s estimates of {where} in {args.format} format:",
                   markup=False, highlight=False)
     for path in written:
         console.print(f"  {path}", markup=False, highlight=False)
+    for label, why in refused.items():
+        console.print(f"warning: {label} not exported: {why}", markup=False, highlight=False)
     return 0
 
 

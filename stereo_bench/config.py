@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
@@ -17,7 +16,7 @@ from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, Strict, Vali
                       field_validator, model_validator)
 
 from .camera import Camera, look_at_rotation, matrix_to_rodrigues
-from .rundir import is_safe_name
+from .rundir import UnreadableFileError, is_safe_name, read_text
 
 # Upper bounds that keep every input within what one machine can render and calibrate; beyond
 # them a run would end in a MemoryError or an overflow rather than in a result.
@@ -28,8 +27,16 @@ MAX_FRAMES = 10_000
 MAX_PATTERN_COUNT = 100  # squares, rows or columns of a board
 MAX_BOARD_MM = 1200.0  # the board's outline, per side (its texture is written at 10 px/mm)
 MAX_BLUR_PX = 50.0
+# A lens and a position: the same bounds hold for every camera read from an exchange file.
+MAX_FOCAL_PX = 1e6
+MAX_SKEW_PX = 1e4
+MAX_DISTORTION = 1e4
+MAX_DISTANCE_MM = 1e6
 MAX_FILE_BYTES = 1 << 20
 MAX_NESTING = 64
+#: Values (scalars, lists, mappings) a YAML document may hold once its aliases are expanded: a
+#: studio of 64 cameras with explicit per-frame poses is under 100,000.
+MAX_NODES = 1_000_000
 
 
 class ConfigError(ValueError):
@@ -74,11 +81,11 @@ class LensConfig(_Strict):
 
     width: Int = Field(ge=2, le=MAX_IMAGE_SIDE)
     height: Int = Field(ge=2, le=MAX_IMAGE_SIDE)
-    fx: Float = Field(gt=0, le=1e6)
-    fy: Float = Field(gt=0, le=1e6)
+    fx: Float = Field(gt=0, le=MAX_FOCAL_PX)
+    fy: Float = Field(gt=0, le=MAX_FOCAL_PX)
     cx: Float
     cy: Float
-    skew: Float = Field(0.0, ge=-1e4, le=1e4)
+    skew: Float = Field(0.0, ge=-MAX_SKEW_PX, le=MAX_SKEW_PX)
     dist: list[Float] = Field(default_factory=lambda: [0.0] * 8,
                               description="[k1, k2, p1, p2, k3, k4, k5, k6] (OpenCV order)")
 
@@ -87,8 +94,8 @@ class LensConfig(_Strict):
     def _dist_len(cls, v):
         if not 4 <= len(v) <= 8:
             raise ValueError("expected 4 to 8 coefficients [k1, k2, p1, p2, k3, k4, k5, k6]")
-        if max(abs(x) for x in v) > 1e4:
-            raise ValueError("expected coefficients of magnitude at most 1e4")
+        if max(abs(x) for x in v) > MAX_DISTORTION:
+            raise ValueError(f"expected coefficients of magnitude at most {MAX_DISTORTION:g}")
         return list(v) + [0.0] * (8 - len(v))
 
     @model_validator(mode="after")
@@ -107,8 +114,9 @@ class LensConfig(_Strict):
 
 
 def _within_reach(v):
-    if max(abs(x) for x in v) > 1e6:
-        raise ValueError("expected coordinates within 1 km (1e6 mm) of the origin")
+    if max(abs(x) for x in v) > MAX_DISTANCE_MM:
+        raise ValueError(f"expected coordinates within 1 km ({MAX_DISTANCE_MM:g} mm) of the "
+                         f"origin")
     return v
 
 
@@ -623,58 +631,71 @@ class _UniqueKeyLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep)
 
 
-def _depth(node, limit: int) -> int:
-    """Nesting depth of a composed YAML node, stopping at ``limit`` (no recursion)."""
-    stack, deepest = [(node, 1)], 0
+def _expanded_shape(node, source: str, what: str) -> None:
+    """Refuse a composed YAML document whose data, with every alias expanded, would hold more
+    than MAX_NODES nodes or nest more than MAX_NESTING levels, or which refers to itself.
+
+    Aliases make the composed document a graph: nine levels of nine aliases are 1.3 KB of text
+    and 9^9 nodes of data, which every consumer (validation, a fingerprint, a copy) walks in full.
+    Each distinct node is measured once (sizes and depths of shared nodes are memoised), so the
+    check costs the text's size, not the expansion's."""
+    size: dict[int, int] = {}
+    depth: dict[int, int] = {}
+    open_nodes: set[int] = set()
+    stack = [(node, False)]
     while stack:
-        n, d = stack.pop()
-        deepest = max(deepest, d)
-        if deepest > limit:
-            break
-        if isinstance(n, yaml.SequenceNode):
-            stack.extend((c, d + 1) for c in n.value)
-        elif isinstance(n, yaml.MappingNode):
-            stack.extend((v, d + 1) for _, v in n.value)
-    return deepest
+        n, children_done = stack.pop()
+        key = id(n)
+        kids = ([c for pair in n.value for c in pair] if isinstance(n, yaml.MappingNode)
+                else n.value if isinstance(n, yaml.SequenceNode) else [])
+        if children_done:
+            open_nodes.discard(key)
+            size[key] = 1 + sum(size[id(c)] for c in kids)
+            depth[key] = 1 + max((depth[id(c)] for c in kids), default=0)
+            if size[key] > MAX_NODES:
+                raise ConfigError(f"{source}: expands to more than {MAX_NODES:,} values once its "
+                                  f"aliases are resolved; expected a {what}")
+            if depth[key] > MAX_NESTING:
+                raise ConfigError(f"{source}: nested more than {MAX_NESTING} levels deep; "
+                                  f"expected a {what}")
+            continue
+        if key in size:
+            continue
+        if key in open_nodes:
+            raise ConfigError(f"{source}: an alias refers to a node that contains it; expected "
+                              f"a {what}")
+        open_nodes.add(key)
+        stack.append((n, True))
+        stack.extend((c, False) for c in kids if id(c) not in size)
 
 
 def load_yaml(path, what: str = "rig file"):
     """The data of a YAML file, or a ConfigError naming the file: unreadable, too large, not
     UTF-8 text, not YAML, nested too deeply, or with a duplicate key."""
-    path = Path(path)
     try:
-        if path.is_dir():
-            raise ConfigError(f"{path}: is a directory; expected a {what}")
-        raw = path.read_bytes()
-    except OSError as e:
-        raise ConfigError(f"{path}: cannot read {what} ({e.strerror})") from None
-    if len(raw) > MAX_FILE_BYTES:
-        raise ConfigError(f"{path}: {len(raw):,} bytes; a {what} is expected to be under "
-                          f"{MAX_FILE_BYTES:,}")
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as e:
-        raise ConfigError(f"{path}: not UTF-8 text (byte {e.start}); expected a {what} "
-                          f"in YAML") from None
+        text = read_text(path, what, MAX_FILE_BYTES)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: cannot read {what} (no such file)") from None
+    except UnreadableFileError as e:
+        raise ConfigError(str(e)) from None
     return parse_yaml(text, str(path), what)
 
 
 def parse_yaml(text: str, source: str, what: str = "rig file"):
     """The data of YAML ``text`` (a file's, or a form's), or a ConfigError naming ``source``:
-    too large, not YAML, nested too deeply, or with a duplicate key."""
+    too large, not YAML, nested too deeply or expanding too far (aliases), or with a duplicate
+    key."""
     if len(text.encode("utf-8", "replace")) > MAX_FILE_BYTES:
         raise ConfigError(f"{source}: a {what} is expected to be under {MAX_FILE_BYTES:,} bytes")
     if "\x00" in text:
         raise ConfigError(f"{source}: contains NUL characters; expected a {what} in YAML")
     try:
-        # Composing is iterative in PyYAML; only the nesting check below stands between a
-        # 10,000-deep document and a RecursionError in the constructor.
+        # Composing is iterative in PyYAML; only the shape check below stands between a
+        # 10,000-deep document (or an alias bomb) and a RecursionError (or a hang) later.
         node = yaml.compose(text, Loader=_UniqueKeyLoader)
         if node is None:
             return None
-        if _depth(node, MAX_NESTING) > MAX_NESTING:
-            raise ConfigError(f"{source}: nested more than {MAX_NESTING} levels deep; expected a "
-                              f"{what}")
+        _expanded_shape(node, source, what)
         loader = _UniqueKeyLoader(text)
         try:
             return loader.get_single_data()

@@ -58,8 +58,11 @@ def _rig_file_cameras(path: Path) -> list[Camera] | str:
     if not isinstance(entry, dict) or "method" not in entry:
         raise ValueError(f"{path}: not a rig calibration written by stereo-bench")
     if "error" in entry:
-        return entry["error"]
-    return [Camera.from_dict(d, str(path)) for d in entry["cameras"]]
+        return str(entry["error"])
+    if not isinstance(entry.get("cameras"), list) or not all(
+            isinstance(d, dict) for d in entry["cameras"]):
+        raise ValueError(f"{path}: expected 'cameras', a list of cameras, in a rig calibration")
+    return io.common.rig([Camera.from_dict(d, str(path)) for d in entry["cameras"]], str(path))
 
 
 def estimates_of(folder, method: str, seed: int | None = None) -> tuple[dict[str, list[Camera]],
@@ -101,14 +104,19 @@ def _trial_estimates(trial: TrialPaths, method: str, where: str) -> dict[str, li
     return {p.stem: [Camera.load_json(p)] for p in files}
 
 
-def write_estimates(estimates: dict[str, list[Camera]], fmt: str, out, **options) -> list[Path]:
+def write_estimates(estimates: dict[str, list[Camera]], fmt: str, out,
+                    **options) -> tuple[list[Path], dict[str, str]]:
     """``estimates_of``'s rigs in format ``fmt`` under ``out`` (a rig directly, single cameras
-    in a folder each); the files written."""
-    written = []
+    in a folder each): the files written, and {label: why} for each estimate the format or the
+    checks on a camera refused (the others are still written)."""
+    written, refused = [], {}
     for label, cams in estimates.items():
         target = Path(out) if label == "rig" else Path(out) / label
-        written += io.export(cams, target, fmt, **options)
-    return written
+        try:
+            written += io.export(cams, target, fmt, **options)
+        except ValueError as e:
+            refused[label] = str(e)
+    return written, refused
 
 
 def score_calibration(ds: Dataset, path, fmt: str | None, out) -> dict:

@@ -147,15 +147,50 @@ def write_png(path, image: np.ndarray) -> Path:
     return write_bytes(path, data.tobytes())
 
 
-def read_json(path):
-    """Parse a JSON file; raise UnreadableFileError naming the file when it cannot be."""
+#: The largest file a reader takes from outside (a COLMAP model with its 2D points, a results
+#: file of a long sweep); anything larger is refused before it is read into memory.
+MAX_READ_BYTES = 256 << 20
+
+
+def read_text(path, what: str = "file", max_bytes: int = MAX_READ_BYTES) -> str:
+    """The UTF-8 text of a file, or an UnreadableFileError naming it and ``what`` was expected:
+    a folder, unreadable, over ``max_bytes``, or not UTF-8. A missing file raises
+    FileNotFoundError, so that callers can tell absent from broken."""
     path = Path(path)
     try:
-        return json.loads(path.read_bytes().decode("utf-8"))
+        if path.is_dir():
+            raise UnreadableFileError(f"{path}: is a folder; expected a {what}")
+        size = path.stat().st_size
+        if size > max_bytes:
+            raise UnreadableFileError(f"{path}: {size:,} bytes; a {what} is expected to be "
+                                      f"under {max_bytes:,}")
+        with open(path, "rb") as f:
+            raw = f.read(max_bytes + 1)  # a file that grows while it is read is still bounded
     except FileNotFoundError:
         raise
-    except (OSError, UnicodeDecodeError, ValueError) as e:
-        raise UnreadableFileError(f"{path}: unreadable ({e})") from None
+    except OSError as e:
+        raise UnreadableFileError(f"{path}: cannot read {what} ({e.strerror})") from None
+    if len(raw) > max_bytes:
+        raise UnreadableFileError(f"{path}: over {max_bytes:,} bytes; expected a {what}")
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise UnreadableFileError(f"{path}: not UTF-8 text (byte {e.start}); expected a "
+                                  f"{what}") from None
+
+
+def read_json(path, what: str = "JSON file"):
+    """Parse a JSON file; raise UnreadableFileError naming the file when it cannot be (too
+    large, not UTF-8, not JSON, or nested past the parser's recursion limit)."""
+    text = read_text(path, what)
+    try:
+        return json.loads(text)
+    except ValueError as e:
+        raise UnreadableFileError(f"{path}: unreadable (not JSON: {e}); expected a "
+                                  f"{what}") from None
+    except RecursionError:
+        raise UnreadableFileError(f"{path}: unreadable (nested too deeply); expected a "
+                                  f"{what}") from None
 
 
 # ----------------------------------------------------------------------------------------------

@@ -31,7 +31,8 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
 from ..camera import Camera
-from ..rundir import write_text
+from ..config import MAX_FILE_BYTES
+from ..rundir import read_text, write_text
 from . import common
 
 FORMAT = "anipose calibration.toml"
@@ -103,9 +104,12 @@ def read(path) -> list[Camera]:
     path = common.existing(common.in_folder(path, (FILE, "*.toml"), "anipose calibration file"),
                            "anipose calibration file")
     try:
-        doc = tomllib.loads(path.read_text())
+        doc = tomllib.loads(read_text(path, "anipose calibration file", MAX_FILE_BYTES))
     except tomllib.TOMLDecodeError as e:
         raise ValueError(f"{path}: not TOML ({e})") from None
+    except RecursionError:
+        raise ValueError(f"{path}: nested too deeply; expected an anipose calibration "
+                         f"file") from None
     tables = sorted(((int(m.group(1)), k) for k in doc if (m := _TABLE.fullmatch(k))))
     if not tables:
         raise ValueError(f"{path}: no [cam_<i>] tables")

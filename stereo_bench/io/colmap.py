@@ -31,7 +31,7 @@ import numpy as np
 
 from ..camera import DIST_NAMES, Camera, matrix_to_rodrigues
 from ..colmap_ref import PIXEL_SHIFT, _from_rigid3d, colmap_model
-from ..rundir import write_text
+from ..rundir import read_text, write_text
 from . import common
 
 FORMAT = "COLMAP"
@@ -137,7 +137,7 @@ def write(cameras: Sequence[Camera], out_dir) -> list[Path]:
 
 def _data_lines(path: Path):
     """(line number, stripped line) of every line of a text file."""
-    for n, line in enumerate(path.read_text().splitlines(), 1):
+    for n, line in enumerate(read_text(path, "COLMAP text file").splitlines(), 1):
         yield n, line.strip()
 
 

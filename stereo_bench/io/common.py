@@ -16,6 +16,8 @@ from typing import Sequence
 import numpy as np
 
 from ..camera import DIST_NAMES, Camera, nearest_rotation
+from ..config import (MAX_DISTANCE_MM, MAX_DISTORTION, MAX_FOCAL_PX, MAX_IMAGE_PIXELS,
+                      MAX_IMAGE_SIDE, MAX_SKEW_PX)
 from ..stereo import cam_from_cam0 as _cam_from_cam0
 
 MM_PER_M = 1000.0
@@ -41,7 +43,50 @@ def rig(cameras: Sequence[Camera], fmt: str, min_count: int = 1) -> list[Camera]
     duplicated = sorted({n for n in names if names.count(n) > 1})
     if duplicated:
         raise ValueError(f"{fmt}: camera names must be distinct, {duplicated} repeat")
+    for cam in cameras:
+        plausible(cam, fmt)
+    centres = np.array([cam.center for cam in cameras])
+    for a in range(len(cameras)):
+        for b in range(a + 1, len(cameras)):
+            if np.linalg.norm(centres[a] - centres[b]) < MIN_BASELINE_MM:
+                raise ValueError(f"{fmt}: cameras {names[a]!r} and {names[b]!r} share one centre "
+                                 f"({centres[a].tolist()} mm); a rig's cameras need a baseline "
+                                 f"to triangulate")
     return cameras
+
+
+#: Cameras of a rig closer than this share a centre: a baseline of zero, which no triangulation
+#: or rig metric can use (a rig file written with T = 0 is a rig nobody calibrated).
+MIN_BASELINE_MM = 1e-3
+
+
+def plausible(camera: Camera, where: str) -> None:
+    """Refuse (ValueError naming the camera and the parameter) a camera that is not a camera:
+    the bounds a rig file puts on a lens (config.LensConfig) and a position, loosened where an
+    estimate may legitimately differ from a designed camera (a principal point anywhere within
+    an image's size of the image). Camera itself already refuses non-finite numbers."""
+    at = f"{where}: camera {camera.name!r}"
+    w, h = camera.width, camera.height
+    if not (2 <= w <= MAX_IMAGE_SIDE and 2 <= h <= MAX_IMAGE_SIDE) or w * h > MAX_IMAGE_PIXELS:
+        raise ValueError(f"{at}: image size {w}x{h}; expected 2..{MAX_IMAGE_SIDE} px a side and "
+                         f"at most {MAX_IMAGE_PIXELS:,} pixels")
+    for name in ("fx", "fy"):
+        value = getattr(camera, name)
+        if not 0 < value <= MAX_FOCAL_PX:
+            raise ValueError(f"{at}: {name} = {value!r}; expected 0 < {name} <= {MAX_FOCAL_PX:g} px")
+    if abs(camera.skew) > MAX_SKEW_PX:
+        raise ValueError(f"{at}: skew = {camera.skew!r}; expected |skew| <= {MAX_SKEW_PX:g} px")
+    for name, c, size in (("cx", camera.cx, w), ("cy", camera.cy, h)):
+        if not -size <= c <= 2 * size:
+            raise ValueError(f"{at}: {name} = {c!r}; expected a principal point within "
+                             f"{-size}..{2 * size} px of an image {size} px wide")
+    worst = int(np.argmax(np.abs(camera.dist)))
+    if abs(camera.dist[worst]) > MAX_DISTORTION:
+        raise ValueError(f"{at}: {DIST_NAMES[worst]} = {float(camera.dist[worst])!r}; expected "
+                         f"coefficients of magnitude at most {MAX_DISTORTION:g}")
+    if np.linalg.norm(camera.tvec) > MAX_DISTANCE_MM:
+        raise ValueError(f"{at}: translation {camera.tvec.tolist()} mm; expected a camera "
+                         f"within {MAX_DISTANCE_MM:g} mm of the world origin")
 
 
 def refuse_skew(camera: Camera, fmt: str) -> None:

@@ -26,8 +26,8 @@ from typing import Sequence
 
 import numpy as np
 import yaml
-
 from ..camera import Camera, compose, invert, matrix_to_rodrigues
+from ..config import load_yaml
 from ..rundir import write_text
 from . import common
 
@@ -104,10 +104,7 @@ def read(path) -> list[Camera]:
     """The rig of a camchain file (or of the folder holding one), cam0 at the identity."""
     path = common.existing(common.in_folder(path, ("camchain*.yaml", "camchain*.yml"),
                                             "Kalibr camchain file"), "Kalibr camchain file")
-    try:
-        chain = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise ValueError(f"{path}: not YAML ({str(e).splitlines()[0]})") from None
+    chain = load_yaml(path, "Kalibr camchain file")
     if not isinstance(chain, dict) or "cam0" not in chain:
         raise ValueError(f"{path}: expected a mapping with cam0, cam1, ...")
     cameras, R, t = [], np.eye(3), np.zeros(3)

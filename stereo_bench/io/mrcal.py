@@ -31,7 +31,8 @@ from typing import Sequence
 import numpy as np
 
 from ..camera import Camera
-from ..rundir import write_text
+from ..config import MAX_FILE_BYTES
+from ..rundir import UnreadableFileError, read_text, write_text
 from . import common
 
 FORMAT = "mrcal .cameramodel"
@@ -87,9 +88,13 @@ def read_camera(path) -> Camera:
     """The camera of one .cameramodel file."""
     path = common.existing(path, "mrcal .cameramodel file")
     try:
-        model = ast.literal_eval(path.read_text())
+        model = ast.literal_eval(read_text(path, "mrcal .cameramodel file", MAX_FILE_BYTES))
+    except UnreadableFileError:
+        raise
     except (SyntaxError, ValueError) as e:
         raise ValueError(f"{path}: not a Python-literal cameramodel ({e})") from None
+    except (RecursionError, MemoryError):  # the parser's own stack, on deeply nested brackets
+        raise ValueError(f"{path}: nested too deeply; expected a mrcal .cameramodel file") from None
     if not isinstance(model, dict):
         raise ValueError(f"{path}: expected a dict with lensmodel, intrinsics, rt_cam_ref, "
                          f"imagersize")

@@ -95,14 +95,23 @@ def node_string(node, default: str) -> str:
     return node.string() if not node.empty() else default
 
 
+#: The lengths of a distortion vector OpenCV's functions accept (0: no distortion).
+OPENCV_DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
+
+
 def node_distortion(node, where: str) -> np.ndarray:
-    """Distortion coefficients of any length OpenCV takes that the model holds (0..8)."""
+    """Distortion coefficients of a length OpenCV takes (4, 5, 8, 12 or 14; or none), of which
+    the model holds the first 8."""
     if node.empty():
         raise ValueError(f"{where}: missing")
     m = node.mat()
     if m is None:
         raise ValueError(f"{where}: expected an opencv-matrix of coefficients")
     d = np.asarray(m, dtype=np.float64).reshape(-1)
+    if d.size not in OPENCV_DIST_LENGTHS:
+        raise ValueError(f"{where}: {d.size} coefficients; OpenCV takes "
+                         f"{', '.join(map(str, OPENCV_DIST_LENGTHS))} ([k1, k2, p1, p2[, k3[, k4, "
+                         f"k5, k6[, s1..s4[, tx, ty]]]]])")
     if d.size > 8 and np.any(d[8:]):
         raise ValueError(f"{where}: {d.size} coefficients with nonzero ones past k6 (thin prism "
                          f"or tilt); the camera model holds [k1, k2, p1, p2, k3, k4, k5, k6]")
