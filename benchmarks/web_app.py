@@ -12,56 +12,25 @@ built). Then prints the size of every report.html / sweep.html under the given f
 from __future__ import annotations
 
 import argparse
-import json
-import socket
-import subprocess
 import sys
 import tempfile
 import time
-import urllib.error
-import urllib.request
 from pathlib import Path
 
-
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _until(url: str, deadline: float, data: bytes | None = None) -> None:
-    while time.perf_counter() < deadline:
-        try:
-            request = urllib.request.Request(url, data, {"Content-Type": "application/json"})
-            with urllib.request.urlopen(request, timeout=30) as r:
-                if r.status == 200:
-                    r.read()
-                    return
-        except (urllib.error.URLError, ConnectionError, TimeoutError):
-            time.sleep(0.02)
-    raise TimeoutError(url)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from web_server import call, running_server  # noqa: E402 — the tests' launcher of the command
 
 
 def startup(runs: Path) -> tuple[float, float, float]:
-    port = _port()
-    url = f"http://127.0.0.1:{port}"
-    t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "stereo_bench.cli", "serve", "--runs",
-                             str(runs), "--port", str(port)], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
-    try:
-        _until(url + "/", t0 + 60)
-        page = time.perf_counter() - t0
-        with urllib.request.urlopen(url + "/api/example") as r:
-            example = json.loads(r.read())
-        ready = time.perf_counter() - t0
+    with running_server(runs) as (url, page):
+        t0 = time.perf_counter()
+        call(url + "/api/example")
+        ready = page + time.perf_counter() - t0
+        _, example = call(url + "/api/example")
         t1 = time.perf_counter()
-        _until(url + "/api/preview", t1 + 120,
-               json.dumps({"config": example, "camera": 0, "frame": 0}).encode())
+        status, _ = call(url + "/api/preview", {"config": example, "camera": 0, "frame": 0})
+        assert status == 200, status
         return page, ready, time.perf_counter() - t1
-    finally:
-        proc.terminate()
-        proc.wait(timeout=10)
 
 
 def main(argv=None) -> None:

@@ -327,7 +327,18 @@ def load_grid(path) -> Sweep:
     """The grid and its configurations (rig files crossed with every axis), all validated
     before anything runs; configuration names must be unique."""
     path = Path(path)
-    data = load_yaml(path, "grid file")
+
+    def rig(rig_file: str) -> tuple[dict, dict]:
+        base = load_rig(path.parent / rig_file).model_dump(mode="json")
+        return base, load_yaml(path.parent / rig_file)  # read again: what the file itself writes
+
+    return parse_grid(load_yaml(path, "grid file"), path, rig)
+
+
+def parse_grid(data, path: Path, rig) -> Sweep:
+    """:func:`load_grid` of a grid file's ``data``, messages naming ``path``; ``rig(rig_file)``
+    gives a listed rig file's resolved data and the data the file itself writes (so that a
+    grid whose rig is not on disk yet, the web app's, is validated before anything runs)."""
     try:
         grid = GridConfig.model_validate(data if isinstance(data, dict) else {"": data})
     except ValidationError as e:
@@ -353,10 +364,9 @@ def load_grid(path) -> Sweep:
     configs = []
     for i, rig_file in enumerate(grid.rigs):
         try:
-            base = load_rig(path.parent / rig_file).model_dump(mode="json")
+            base, raw = rig(rig_file)
         except ConfigError as e:
             raise ConfigError(f"{path}: rigs.{i}: {e}") from None
-        raw = load_yaml(path.parent / rig_file)  # read again: what the file itself writes
         for combo in _combinations(axes):
             configs.append(_configuration(path, rig_file, base, raw, axes, combo))
     names = [c.name for c in configs]

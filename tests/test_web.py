@@ -5,80 +5,21 @@ Playwright's driver of /usr/bin/chromium (see tests/test_html_report.py for what
 them). Screenshots go to $SYNTHCAL_SCREENSHOTS when set.
 """
 
-import json
-import socket
-import subprocess
-import sys
-import time
-import urllib.error
-import urllib.request
 
 import pytest
 
 from test_html_report import BROWSER, open_page, playwright, screenshot_dir
+from web_server import running_server
 
 pytestmark = pytest.mark.skipif(BROWSER is not None, reason=BROWSER or "")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     """(base URL, runs folder, seconds from the command to a page that answers)."""
     runs = tmp_path_factory.mktemp("web") / "runs"
-    port = _free_port()
-    start = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "stereo_bench.cli", "serve", "--runs",
-                             str(runs), "--port", str(port)], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
-    url = f"http://127.0.0.1:{port}"
-    while True:
-        try:
-            with urllib.request.urlopen(url + "/", timeout=1) as r:
-                if r.status == 200:
-                    break
-        except (urllib.error.URLError, ConnectionError, TimeoutError):
-            pass
-        if proc.poll() is not None:
-            pytest.fail(f"serve stopped: {proc.stdout.read()}")
-        if time.perf_counter() - start > 60:
-            proc.kill()
-            pytest.fail("serve did not answer within 60 s")
-        time.sleep(0.1)
-    ready = time.perf_counter() - start
-    yield url, runs, ready
-    proc.terminate()
-    proc.wait(timeout=10)
-
-
-def _post(url, body):
-    request = urllib.request.Request(url, json.dumps(body).encode(),
-                                     {"Content-Type": "application/json"})
-    try:
-        with urllib.request.urlopen(request) as r:
-            return r.status, json.loads(r.read())
-    except urllib.error.HTTPError as e:
-        return e.code, json.loads(e.read())
-
-
-def test_requests_cannot_write_or_read_outside_the_runs_folder(server):
-    url, runs, _ = server
-    with urllib.request.urlopen(url + "/api/example") as r:
-        example = json.loads(r.read())
-    for name in ("../escape", "/tmp/x", "a/b", ""):
-        status, answer = _post(url + "/api/runs", {"name": name, "config": example})
-        assert status == 422 and "name" in answer["errors"][0]
-    assert not (runs.parent / "escape").exists()
-    for path in ("/runs/..%2F..%2Fetc/passwd", "/runs/x/..%2F..%2F..%2Fetc%2Fpasswd"):
-        with pytest.raises(urllib.error.HTTPError) as e:
-            urllib.request.urlopen(url + path)
-        assert e.value.code == 404
-    status, answer = _post(url + "/api/validate", {"config": {**example, "seed": -1}})
-    assert status == 200 and not answer["ok"] and any("seed" in e for e in answer["errors"])
+    with running_server(runs) as (url, ready):
+        yield url, runs, ready
 
 
 def test_compose_preview_run_and_read_the_report(server, tmp_path):

@@ -15,29 +15,39 @@ API (JSON unless said; a rig is sent as the rig file's data, validated by the sa
 * ``POST /api/trajectory {config}`` -> PNG: the board's path and the cameras in 3D;
 * ``POST /api/runs {name, config}``, ``POST /api/sweeps {name, config, axes (YAML text: field
   path -> values, as a grid file's axes), trials}`` start a job;
-  ``GET /api/jobs``, ``GET /api/jobs/{id}`` its state (jobs.py);
-* ``GET /api/runs`` the folders of RUNS with a report, newest first;
+  ``GET /api/jobs``, ``GET /api/jobs/{id}`` its state, ``POST /api/jobs/{id}/cancel`` stops it
+  (jobs.py); a rig, a sweep or a preview over the web app's budget is refused (budget.py);
+* ``GET /api/runs`` the folders of RUNS with a report, newest first; ``DELETE /api/runs/{name}``
+  removes one (not while a job writes into it);
 * ``GET /runs/{name}/{file}`` a file of a run (its report.html, plots), only inside RUNS;
 * ``GET /compare?a=NAME&b=NAME`` two runs' reports side by side, with their headline figures.
+
+Requests are checked before any route sees them: a Host header other than this machine's
+names (or ``--host``'s) is refused, so a web page cannot reach the app through DNS rebinding; a
+body over MAX_BODY_BYTES is refused unread.
 """
 
 from __future__ import annotations
 
-import collections
 import io
-import json
 from pathlib import Path
 
 from fastapi import Body, FastAPI, HTTPException
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from ..config import ConfigError, load_rig, parse_rig, parse_yaml
-from .jobs import Jobs
+from ..sweep import parse_grid
+from . import budget
+from .jobs import Jobs, grid_data
+from .preview import PreviewTimeout, PreviewWorker
 
 STATIC = Path(__file__).with_name("static")
 EXAMPLE = Path(__file__).resolve().parents[2] / "configs" / "quickstart.yaml"
-MAX_PREVIEW_RAYS = 4  # cameras whose per-pixel rays are kept between previews
+MAX_BODY_BYTES = 2 << 20  # a rig file is at most 1 MiB of YAML; its JSON form is about as long
+LOCAL_HOSTS = ["127.0.0.1", "localhost", "::1", "[::1]"]
 
 
 def _resolved(cfg) -> dict:
@@ -63,14 +73,36 @@ def _example() -> dict:
         "pattern": {"kind": "checkerboard"}, "trajectory": {"frames": 40}}))
 
 
-def create_app(runs: Path) -> FastAPI:
+def allowed_hosts(host: str) -> list[str]:
+    """The Host headers the app answers: this machine's names, and ``host`` when it listens on
+    a named interface; any, when it listens on every interface (the user chose to expose it)."""
+    if host in ("0.0.0.0", "::", ""):
+        return ["*"]
+    return LOCAL_HOSTS + ([host] if host not in LOCAL_HOSTS else [])
+
+
+def create_app(runs: Path, host: str = "127.0.0.1") -> FastAPI:
     import yaml
 
     runs = Path(runs)
     runs.mkdir(parents=True, exist_ok=True)
+    root = runs.resolve()
     jobs = Jobs(runs)
-    app = FastAPI(title="SynthCal", docs_url=None, redoc_url=None)
-    rays_cache: collections.OrderedDict = collections.OrderedDict()
+    previews = PreviewWorker()
+    app = FastAPI(title="SynthCal", docs_url=None, redoc_url=None,
+                  on_shutdown=[previews.close])
+    app.add_middleware(TrustedHostMiddleware, allowed_hosts=allowed_hosts(host))
+
+    @app.middleware("http")
+    async def bounded_body(request, call_next):
+        length = request.headers.get("content-length")
+        if length is not None and (not length.isdigit() or int(length) > MAX_BODY_BYTES):
+            return JSONResponse({"ok": False, "errors": [
+                f"request body: expected at most {MAX_BODY_BYTES:,} bytes"]}, status_code=413)
+        if length is None and "transfer-encoding" in request.headers:  # a body of unknown size
+            return JSONResponse({"ok": False, "errors": [
+                "request body: expected a Content-Length"]}, status_code=411)
+        return await call_next(request)
 
     def answer(cfg, errors):
         if errors:
@@ -110,33 +142,19 @@ def create_app(runs: Path) -> FastAPI:
 
     @app.post("/api/preview")
     def preview(config: dict = Body(...), camera: int = Body(0), frame: int = Body(0)):
-        import cv2
-
-        from ..dataset import frame_rng, render_settings
-        from ..render import AnalyticRenderer, PixelRays
-        from ..rig import Rig
-
         cfg = need(config)
-        rig = Rig.from_config(cfg)
-        if not 0 <= camera < len(rig.cameras) or not 0 <= frame < len(rig.trajectory):
-            raise HTTPException(422, detail=[f"camera 0..{len(rig.cameras) - 1}, frame "
-                                             f"0..{len(rig.trajectory) - 1}"])
-        cam = rig.cameras[camera]
-        key = json.dumps(cam.to_dict(), sort_keys=True)
-        if key not in rays_cache:
-            rays_cache[key] = PixelRays(cam)
-            while len(rays_cache) > MAX_PREVIEW_RAYS:
-                rays_cache.popitem(last=False)
-        rays_cache.move_to_end(key)
-        renderer = AnalyticRenderer(cam, rig.pattern, render_settings(cfg, rig, cam),
-                                    rays_cache[key])
-        R, t = rig.cam_from_board(cam)
-        image = renderer.render(R[frame], t[frame], frame_rng(cfg.seed, camera, frame))
-        visible = int(rig.ground_truth().visible[camera, frame].sum())
-        ok, png = cv2.imencode(".png", image)
-        return Response(png.tobytes(), media_type="image/png",
-                        headers={"X-Visible-Points": str(visible),
-                                 "X-Camera": cam.name, "X-Frames": str(len(rig.trajectory))})
+        cameras = len(cfg.cameras_true())
+        frames = cfg.trajectory.frames_for(cameras)
+        if not 0 <= camera < cameras or not 0 <= frame < frames:
+            raise HTTPException(422, detail=[f"camera 0..{cameras - 1}, frame 0..{frames - 1}"])
+        try:
+            budget.refuse_preview(cfg, camera)
+            png, headers = previews.render(cfg.model_dump(mode="json"), camera, frame)
+        except ValueError as e:
+            raise HTTPException(422, detail=str(e).splitlines()) from None
+        except PreviewTimeout as e:
+            raise HTTPException(503, detail=[str(e)]) from None
+        return Response(png, media_type="image/png", headers=headers)
 
     @app.post("/api/trajectory")
     def trajectory(config: dict = Body(..., embed=True)):
@@ -152,6 +170,7 @@ def create_app(runs: Path) -> FastAPI:
     def start_run(name: str = Body(...), config: dict = Body(...)):
         cfg = need(config)
         try:
+            budget.refuse_job(budget.rig_samples(cfg), "run")
             return jobs.start_run(name, cfg).view()
         except ValueError as e:
             raise HTTPException(422, detail=[str(e)]) from None
@@ -167,6 +186,13 @@ def create_app(runs: Path) -> FastAPI:
             if not isinstance(parsed, dict) or not parsed:
                 raise ValueError("axes: expected a mapping of rig-file field paths to lists of "
                                  "values, e.g. environment.sensor.noise_sigma: [0, 4]")
+            # The whole grid is validated here, as `stereo-bench sweep` validates it before
+            # anything runs, so that a bad axis is refused in the answer, not in the job.
+            resolved = cfg.model_dump(mode="json")
+            sweep = parse_grid(grid_data(name, parsed, trials), jobs.folder(name) / "grid.yaml",
+                               lambda _: (resolved, resolved))
+            budget.refuse_job(sweep.trials * sum(budget.rig_samples(c.config)
+                                                 for c in sweep.configurations), "sweep")
             return jobs.start_sweep(name, cfg, parsed, trials).view()
         except (ValueError, ConfigError) as e:
             raise HTTPException(422, detail=str(e).splitlines()) from None
@@ -182,10 +208,29 @@ def create_app(runs: Path) -> FastAPI:
             raise HTTPException(404, detail=[f"no job {job_id}"])
         return found.view()
 
+    @app.post("/api/jobs/{job_id}/cancel")
+    def cancel(job_id: int):
+        found = jobs.cancel(job_id)
+        if found is None:
+            raise HTTPException(404, detail=[f"no job {job_id}"])
+        return found.view()
+
+    @app.delete("/api/runs/{name}")
+    def delete_run(name: str):
+        try:
+            removed = jobs.delete(name)
+        except ValueError as e:
+            raise HTTPException(409 if "job" in str(e) else 404, detail=[str(e)]) from None
+        if not removed:
+            raise HTTPException(404, detail=[f"no run {name!r}"])
+        return {"ok": True, "deleted": name}
+
     @app.get("/api/runs")
     def list_runs():
         found = []
         for folder in runs.iterdir():
+            if folder.is_symlink():
+                continue  # served from nowhere (run_file), so not listed
             for page in ("report.html", "sweep.html"):
                 if (folder / page).is_file():
                     found.append({"name": folder.name, "report": f"/runs/{folder.name}/{page}",
@@ -195,12 +240,14 @@ def create_app(runs: Path) -> FastAPI:
 
     @app.get("/runs/{name}/{path:path}")
     def run_file(name: str, path: str):
+        # Contained in the runs folder itself, whatever a run folder or a file in it links to
+        # (a symlinked run folder would otherwise be its own root).
         try:
-            root = jobs.folder(name).resolve()
-        except ValueError as e:
-            raise HTTPException(404, detail=[str(e)]) from None
-        target = (root / path).resolve()
-        if root not in target.parents or not target.is_file():
+            target = (jobs.folder(name) / path).resolve()
+            inside = target.is_relative_to(root) and target.is_file()
+        except (ValueError, OSError):  # a NUL byte, a loop of links: no such file
+            inside = False
+        if not inside:
             raise HTTPException(404, detail=[f"no file {path!r} in run {name!r}"])
         return FileResponse(target)
 
@@ -215,10 +262,16 @@ def create_app(runs: Path) -> FastAPI:
                 raise HTTPException(404, detail=[f"run {name!r} has no report"])
         return (STATIC / "compare.html").read_text().replace("{{A}}", a).replace("{{B}}", b)
 
-    @app.exception_handler(HTTPException)
-    def refused(_, exc: HTTPException):
+    # Starlette's own refusals too (a body that is not JSON, an unknown path), in one shape.
+    @app.exception_handler(StarletteHTTPException)
+    def refused(_, exc: StarletteHTTPException):
         detail = exc.detail if isinstance(exc.detail, list) else [str(exc.detail)]
         return JSONResponse({"ok": False, "errors": detail}, status_code=exc.status_code)
+
+    @app.exception_handler(Exception)
+    def failed(_, exc: Exception):  # a bug, said in one line (the server's log has the rest)
+        return JSONResponse({"ok": False, "errors": [
+            f"internal error: {type(exc).__name__}: {exc}"]}, status_code=500)
 
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     return app
@@ -227,4 +280,4 @@ def create_app(runs: Path) -> FastAPI:
 def serve(runs: Path, host: str = "127.0.0.1", port: int = 8765) -> None:
     import uvicorn
 
-    uvicorn.run(create_app(runs), host=host, port=port, log_level="warning")
+    uvicorn.run(create_app(runs, host), host=host, port=port, log_level="warning")

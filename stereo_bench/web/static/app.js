@@ -109,20 +109,36 @@ async function refreshPreview() {
   if (t.ok) $("#p-trajectory").src = URL.createObjectURL(await t.blob());
 }
 
+// Server text (an error quoting a value the user typed) is shown as text, never as markup.
+const text = s => String(s).replace(/[&<>"']/g, c => `&#${c.charCodeAt(0)};`);
+
 function jobView(job) {
   const done = job.state === "done", failed = job.state === "failed";
+  const active = job.state === "queued" || job.state === "running";
   const bar = job.total ? `<progress max="${job.total}" value="${job.done}"></progress>` : "";
   const link = done ? ` <a class="report" href="${job.report}" target="_blank">report</a>` : "";
-  return `<div class="job ${job.state}" id="job-${job.id}"><b>${job.kind} ${job.name}</b>: ` +
-    `<span class="state">${job.state}</span> ${job.stage} ${bar} ` +
+  const stop = active ? ` <button class="cancel" onclick="cancelJob(${job.id})">cancel</button>` : "";
+  return `<div class="job ${job.state}" id="job-${job.id}"><b>${job.kind} ${text(job.name)}</b>: ` +
+    `<span class="state">${job.state}</span> ${text(job.stage)} ${bar} ` +
     `${job.total ? job.done + "/" + job.total : ""} (${job.seconds.toFixed(0)} s)` +
-    `${failed ? " <span class='errors'>" + job.error + "</span>" : ""}${link}</div>`;
+    `${failed ? " <span class='errors'>" + text(job.error) + "</span>" : ""}${link}${stop}</div>`;
+}
+
+async function cancelJob(id) {
+  await fetch(`/api/jobs/${id}/cancel`, {method: "POST"});
+}
+
+async function deleteRun(name) {
+  if (!confirm(`Delete the run folder ${name} and everything in it?`)) return;
+  const r = await fetch(`/api/runs/${encodeURIComponent(name)}`, {method: "DELETE"});
+  if (!r.ok) alert((await r.json()).errors.join("; "));
+  listRuns();
 }
 
 async function follow(job) {
   const box = $("#jobs");
   if (job.errors) { box.insertAdjacentHTML("afterbegin", `<div class="job failed">` +
-                    job.errors.join("; ") + "</div>"); return; }
+                    text(job.errors.join("; ")) + "</div>"); return; }
   box.insertAdjacentHTML("afterbegin", jobView(job));
   while (job.state === "queued" || job.state === "running") {
     await new Promise(r => setTimeout(r, 500));
@@ -136,7 +152,8 @@ async function listRuns() {
   const runs = await (await fetch("/api/runs")).json();
   $("#run-list").innerHTML = runs.map(r =>
     `<li><a href="${r.report}" target="_blank">${r.name}</a> (${r.kind}, ` +
-    `${new Date(r.modified * 1000).toLocaleString()})</li>`).join("");
+    `${new Date(r.modified * 1000).toLocaleString()}) ` +
+    `<button class="delete" onclick="deleteRun('${r.name}')">delete</button></li>`).join("");
   const options = runs.filter(r => r.kind === "report")
     .map(r => `<option>${r.name}</option>`).join("");
   $("#c-a").innerHTML = options; $("#c-b").innerHTML = options;
