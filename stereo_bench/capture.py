@@ -2,8 +2,11 @@
 what can be known without ground truth.
 
 The capture (``image_folders.ImageFolders``) goes through the stages a rendered dataset goes
-through (evaluate.load_or_detect, evaluate.calibrate_cameras, pipeline.rig_of and rig_summary);
-in place of the scoring against the truth, each estimate gets:
+through (evaluate.load_or_detect, evaluate.calibrate_cameras, pipeline.rig_of and rig_summary).
+Between detection and calibration, each camera's views are asked whether they can determine the
+camera at all (diagnostics.view_geometry: enough views, at orientations that fix the focal
+length); a camera whose views cannot is not calibrated by any method, and says why, once. In
+place of the scoring against the truth, each estimate gets:
 
 * its fit: RPE per camera and per view, with outlier views and points flagged, and a test that
   the residuals are noise (diagnostics.py);
@@ -33,8 +36,9 @@ import numpy as np
 from .calibrate import get_calibrator
 from .config import CalibrationConfig
 from .detect import measure_disc_diameter
-from .diagnostics import diagnose, heldout
-from .evaluate import Estimate, calibrate_cameras, clear_calibrations, load_or_detect
+from .diagnostics import diagnose, heldout, view_geometry
+from .evaluate import (Estimate, calibrate_cameras, clear_calibrations, intrinsics_frames,
+                       load_or_detect, observations)
 from .image_folders import ImageFolders
 from .metrics import projection_difference
 from .multiview_ref import opencv_multiview
@@ -112,35 +116,68 @@ def with_measured_diameter(source: ImageFolders) -> tuple[ImageFolders, str]:
 
 #: A held-out error this much above the in-sample one says the model fits the noise.
 OVERFIT_RATIO = 1.5
+#: A fold is reported when it covers at least this share of the image: what rounds to 0.1 %
+#: with one decimal. The validity grid (metrics.validity, 64 x 48) has 0.03 % per point, so a
+#: fold in one corner point is below it (the report's table still marks the estimate).
+REPORTED_FOLD = 0.0005
+
+
+def _grouped(items: list[tuple[str, str, str]]) -> list[str]:
+    """(method, camera, text) -> one line per camera and text, naming every method it holds
+    for: the same fact once, not once per method."""
+    methods: dict[tuple[str, str], list[str]] = {}
+    for m, cam, text in items:
+        methods.setdefault((cam, text), []).append(m)
+    return [f"{', '.join(ms)}, camera {cam}: {text}" for (cam, text), ms in methods.items()]
 
 
 def flags(results: dict) -> list[str]:
     """What looks wrong in a capture's estimates, in words: a model that folds inside the image
     (an overfitted high-order distortion, TRAPS.md), a held-out error far above the fit's, views
-    that fit worse than the others, detections far off their reprojection."""
+    that fit worse than the others, detections far off their reprojection. Each fact once: the
+    methods it holds for are named together."""
     out = []
     for m, cams in results["calibration"].items():
         for cam, e in cams.items():
             if "error" in e:
                 continue
-            where = f"{m}, camera {cam}"
-            if not e["validity"]["usable"]:
-                out.append(f"{where}: the lens model has no unique ray over "
-                           f"{1 - e['validity']['valid_fraction']:.0%} of the image (it folds "
-                           f"there); projections and triangulations there are meaningless")
+            folded = 1 - e["validity"]["valid_fraction"]
+            if not e["validity"]["usable"] and folded >= REPORTED_FOLD:
+                out.append((m, cam, f"the lens model has no unique ray over {100 * folded:.1f} % "
+                                    f"of the image (it folds there); projections and "
+                                    f"triangulations there are meaningless"))
             ratio = e.get("heldout", {}).get("ratio")
             if isinstance(ratio, (int, float)) and ratio > OVERFIT_RATIO:
-                out.append(f"{where}: held-out error {ratio:.2f}x the fit's: the model fits the "
-                           f"noise (fewer coefficients, or more views)")
+                out.append((m, cam, f"held-out error {ratio:.2f}x the fit's: the model fits the "
+                                    f"noise (fewer coefficients, or more views)"))
             points = e["diagnostics"]["points"]["flagged"]
             if points:
                 worst = points[0]
-                out.append(f"{where}: {len(points)} detection(s) off their reprojection by more "
-                           f"than {e['diagnostics']['points']['threshold_px']:.2f} px (worst "
-                           f"{worst['residual_px']:.2f} px in "
-                           f"{results['frame_names'][worst['view_id']]} at "
-                           f"({worst['image_point'][0]:.0f}, {worst['image_point'][1]:.0f}))")
-    return out
+                out.append((m, cam,
+                            f"{len(points)} detection(s) off their reprojection by more than "
+                            f"{e['diagnostics']['points']['threshold_px']:.2f} px (worst "
+                            f"{worst['residual_px']:.2f} px in "
+                            f"{results['frame_names'][worst['view_id']]} at "
+                            f"({worst['image_point'][0]:.0f}, {worst['image_point'][1]:.0f}))"))
+    return _grouped(out)
+
+
+def failures(results: dict) -> list[str]:
+    """The cameras and methods that gave no estimate, in words, each reason once: a camera not
+    calibrated at all (no usable view, or views that cannot determine it) in one line, a method
+    that failed on a camera with the other methods that failed the same way."""
+    out, items = [], []
+    for cam in (c["name"] for c in results["cameras"]):
+        errors = {m: cams[cam]["error"] for m, cams in results["calibration"].items()
+                  if "error" in cams.get(cam, {})}
+        if cam in results["refused"]:
+            out.append(results["refused"][cam])
+            continue
+        if isinstance(results["detection"][cam]["views_left_out"], str):  # no usable view
+            out.append(next(iter(errors.values())))
+            continue
+        items += [(m, cam, f"failed: {e}") for m, e in errors.items()]
+    return out + _grouped(items)
 
 
 def agreement(estimates: dict[str, Estimate]) -> list[dict]:
@@ -185,6 +222,48 @@ def _opencv_rig(rig, image_points, source) -> dict:
     return out
 
 
+def view_evidence(source: ImageFolders, dets, calibration: CalibrationConfig
+                  ) -> tuple[dict[str, dict], dict[str, str], dict[str, dict]]:
+    """Before any method runs: per camera with usable views, what they can determine
+    (diagnostics.view_geometry); the cameras they cannot determine, with the reason in words
+    (naming the camera, and the board's description when it was found in few images: a wrong
+    --inner-corners matches a sub-grid in a few views only); and each camera's found views left
+    out (evaluate.observations). A camera without any usable view is left to the calibration
+    stage, which says so."""
+    geometry, refused, dropped = {}, {}, {}
+    for c, (cam, det) in enumerate(zip(source.cameras, dets)):
+        try:
+            obs, dropped[cam.name] = observations(det, source.object_points, cam,
+                                                  intrinsics_frames(source, c, calibration))
+        except ValueError:
+            continue
+        try:
+            g = geometry[cam.name] = view_geometry(obs)
+        except (ValueError, np.linalg.LinAlgError) as e:  # the methods will tell
+            geometry[cam.name] = {"error": f"{type(e).__name__}: {e}"}
+            continue
+        if g["refused"] is None:
+            continue
+        images = sum(p is not None for p in source.files[c])
+        why = f"camera {cam.name!r} not calibrated: {g['refused']}"
+        found = int(det.found.sum())
+        if found < images / 2:
+            why += (f". The board was found in only {found} of {images} images: "
+                    + _board_hint(source.pattern))
+        refused[cam.name] = why
+    return geometry, refused, dropped
+
+
+def _board_hint(pattern) -> str:
+    size = getattr(pattern, "pattern_size", None)
+    if pattern.kind == "checkerboard" and size:
+        return (f"is the board described right? --inner-corners {size[0]}x{size[1]} counts the "
+                f"corners where four squares meet (a board of {size[0] + 1}x{size[1] + 1} "
+                f"squares); a smaller count than the board's matches a part of it in a few "
+                f"views only")
+    return "is the board described right (its kind, size and counts)?"
+
+
 def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration:
                       CalibrationConfig = CalibrationConfig(), folds: int = DEFAULT_FOLDS,
                       seed: int = 0, progress=None, notes_in: list[str] = ()) -> dict:
@@ -204,7 +283,18 @@ def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration
     dets, detect_s, det_fp = load_or_detect(source, trial, progress, notes)
     clear_calibrations(trial)
     t0 = time.perf_counter()
-    entries, estimates, left_out = calibrate_cameras(source, dets, methods, trial, calibration)
+    geometry, refused, dropped = view_evidence(source, dets, calibration)
+    # A refused camera reaches the calibration stage without views (so no method runs on it and
+    # no estimate of it is written); its entries then say why, in the refusal's words.
+    offered = [dataclasses.replace(d, found=np.zeros_like(d.found)) if c.name in refused else d
+               for c, d in zip(source.cameras, dets)]
+    entries, estimates, left_out = calibrate_cameras(source, offered, methods, trial,
+                                                     calibration)
+    for name in refused:
+        for m in methods:
+            entries[m][name] = {"error": f"camera {name!r} not calibrated: "
+                                         f"{geometry[name]['refused_brief']} (notes)"}
+        left_out[name] = dropped[name]
     calibrate_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     for m in methods:
@@ -227,22 +317,29 @@ def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration
                                "views_left_out": left_out[c.name]}
                       for c, d in zip(source.cameras, dets)},
         "calibration": entries,
+        # What each camera's views can determine (diagnostics.view_geometry), and the cameras
+        # not calibrated because of it, with the reason.
+        "view_geometry": geometry,
+        "refused": refused,
         "agreement": {c.name: agreement({m: estimates[m, c.name] for m in methods
                                           if (m, c.name) in estimates})
                       for c in source.cameras},
         "rig": {},
-        "warnings": source.warnings,
+        "warnings": list(source.warnings),
         "detections_fingerprint": det_fp,
     }
-    results["warnings"] += flags(results)
+    results["warnings"] += failures(results) + flags(results)
     diagnostics_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     if len(source.cameras) >= 2:
         for m in methods:
-            failed = [e["error"] for e in entries[m].values() if "error" in e]
+            failed = [(cam, e["error"]) for cam, e in entries[m].items() if "error" in e]
             try:
                 if failed:
-                    raise ValueError(f"a camera's calibration failed: {failed[0]}")
+                    cam, why = failed[0]
+                    raise ValueError(f"camera {cam!r} has no estimate by {m}"
+                                     + (": its views cannot determine it (notes)"
+                                        if cam in refused else f": {why}"))
                 rig, image_points = rig_of(source, trial, m, calibration)
                 entry, _ = rig_summary(rig, image_points, source.object_points, m, calibration)
                 entry["opencv_multiview"] = _opencv_rig(rig, image_points, source)

@@ -38,8 +38,8 @@ from .config import ConfigError, RigConfig, parse_rig
 from .render import AnalyticRenderer, RenderSettings
 from .render.imaging import Light, Motion, Optics, Sensor
 from .rig import GroundTruth, Rig, Trajectory, coverage_warnings
-from .rundir import (DatasetPaths, UnreadableFileError, fingerprint, read_json, write_json,
-                     write_npy, write_png, write_text)
+from .rundir import (DatasetPaths, UnreadableFileError, fingerprint, read_grey, read_json,
+                     write_json, write_npy, write_png, write_text)
 
 SCHEMA_VERSION = 4  # 4: the imaging model (environment sections, board_points)
 TEXTURE_PX_PER_MM = 10.0
@@ -255,7 +255,7 @@ class Dataset:
         else:
             cam = self.cameras[camera]
         path = self.paths.image(cam.name, frame)
-        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        img = read_grey(path)
         if img is None:
             raise FileNotFoundError(f"{path}: missing or unreadable image")
         if img.shape != (cam.height, cam.width):

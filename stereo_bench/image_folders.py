@@ -9,6 +9,11 @@ Files. Each camera is a folder (or a glob such as ``data/left*.jpg``) of JPEG, P
 Frames are paired across cameras by the number in the file name: the last run of digits of the
 stem (``left07.jpg``, ``cam2/0007.png`` and ``right_7.tif`` are all frame 7); a name without a
 digit pairs by its whole stem. A frame one camera lacks is a frame that camera did not see.
+
+Image size. A camera's image size is the most common size among its images (on a tie, the size
+of its earliest image among the tied), so one odd image, first or not, cannot make the others
+look wrong; the images of another size, and the unreadable ones, are named with their sizes in
+the capture's warnings and recorded by the detection as frames not found.
 """
 
 from __future__ import annotations
@@ -16,15 +21,15 @@ from __future__ import annotations
 import glob
 import hashlib
 import re
+from collections import Counter
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from .patterns import Pattern
-from .rundir import is_safe_name
+from .rundir import is_safe_name, read_grey
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 _LAST_NUMBER = re.compile(r"(\d+)(?!.*\d)")
@@ -71,11 +76,43 @@ def _images_of(name: str, where: str) -> list[Path]:
     return [keys[k] for k in sorted(keys)]
 
 
-def _image_size(path: Path) -> tuple[int, int]:
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ValueError(f"{path}: not an image OpenCV can read")
-    return img.shape[1], img.shape[0]
+def _image_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) of an image as ``ImageFolders.image`` reads it (grey, so EXIF orientation
+    is applied alike), or None when OpenCV cannot read it."""
+    img = read_grey(path)
+    return None if img is None else (img.shape[1], img.shape[0])
+
+
+#: Odd or unreadable images named in a camera's warning before "and N more".
+_NAMED = 5
+
+
+def _named(paths: list[str]) -> str:
+    more = f" and {len(paths) - _NAMED} more" if len(paths) > _NAMED else ""
+    return ", ".join(paths[:_NAMED]) + more
+
+
+def camera_size(name: str, paths: list[Path]) -> tuple[tuple[int, int], str | None]:
+    """A camera's image size, the most common among its images (module notes), and a warning
+    naming the images of another size (with theirs) and the unreadable ones, or None.
+    ValueError naming the camera when none of its images can be read."""
+    sizes = {p: _image_size(p) for p in paths}
+    votes = Counter(s for s in sizes.values() if s is not None)
+    if not votes:
+        raise ValueError(f"camera {name!r}: none of its {len(paths)} images is one OpenCV can "
+                         f"read (e.g. {paths[0]})")
+    size = votes.most_common(1)[0][0]  # ties: the earliest image's, as Counter keeps order
+    odd = [f"{p.name} ({s[0]}x{s[1]} px)" for p, s in sizes.items()
+           if s is not None and s != size]
+    unreadable = [p.name for p, s in sizes.items() if s is None]
+    if not odd and not unreadable:
+        return size, None
+    parts = [f"{len(odd)} of another size: {_named(odd)}"] if odd else []
+    if unreadable:
+        parts.append(f"{len(unreadable)} OpenCV cannot read (or over 64 M pixels): "
+                     f"{_named(unreadable)}")
+    return size, (f"camera {name!r}: its images are {size[0]}x{size[1]} px ({votes[size]} of "
+                  f"{len(paths)}); left out, " + "; ".join(parts))
 
 
 @dataclass(frozen=True, eq=False)
@@ -89,12 +126,15 @@ class ImageFolders:
     files: list[list[Path | None]]
     keys: list[tuple[int, int | str]]
     pattern: Pattern
+    #: Per camera with odd or unreadable images, the warning naming them (camera_size).
+    size_warnings: tuple[str, ...] = ()
 
     @classmethod
     def open(cls, cameras: dict[str, str], pattern: Pattern) -> "ImageFolders":
         """``cameras``: name -> folder or glob. Raises ValueError or FileNotFoundError naming the
-        camera and the file when a folder is empty, a name is unusable or images differ in
-        size within a camera."""
+        camera and the file when a folder is empty, a name is unusable or none of a camera's
+        images can be read; images of another size than most of a camera's are named in
+        ``warnings`` (module notes)."""
         if not cameras:
             raise ValueError("cameras: expected at least one camera folder")
         per_camera = {}
@@ -105,9 +145,12 @@ class ImageFolders:
             per_camera[name] = {frame_key(p): p for p in _images_of(name, where)}
         keys = sorted(set().union(*per_camera.values()))
         files = [[images.get(k) for k in keys] for images in per_camera.values()]
-        cams = [ImageCamera(name, *_image_size(next(p for p in row if p is not None)))
-                for name, row in zip(per_camera, files)]
-        return cls(cams, files, keys, pattern)
+        cams, warnings = [], []
+        for name, row in zip(per_camera, files):
+            size, warning = camera_size(name, [p for p in row if p is not None])
+            cams.append(ImageCamera(name, *size))
+            warnings += [warning] if warning else []
+        return cls(cams, files, keys, pattern, tuple(warnings))
 
     @property
     def frames(self) -> int:
@@ -126,10 +169,11 @@ class ImageFolders:
     def warnings(self) -> list[str]:
         alone = [self.frame_name(f) for f in range(self.frames)
                  if sum(row[f] is not None for row in self.files) == 1]
+        out = []
         if len(self.cameras) > 1 and alone:
-            return [f"{len(alone)} frame(s) have an image from one camera only (e.g. "
-                    f"{alone[0]}): they serve that camera's intrinsics, not the rig"]
-        return []
+            out.append(f"{len(alone)} frame(s) have an image from one camera only (e.g. "
+                       f"{alone[0]}): they serve that camera's intrinsics, not the rig")
+        return out + list(self.size_warnings)
 
     def frame_name(self, frame: int) -> str:
         kind, key = self.keys[frame]
@@ -142,12 +186,12 @@ class ImageFolders:
         cam, path = self.cameras[camera], self.files[camera][frame]
         if path is None:
             raise FileNotFoundError(f"camera {cam.name!r} has no image of {self.frame_name(frame)}")
-        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        img = read_grey(path)
         if img is None:
-            raise ValueError(f"{path}: not an image OpenCV can read")
+            raise ValueError(f"{path}: not an image OpenCV can read (or over 64 M pixels)")
         if (img.shape[1], img.shape[0]) != cam.size:
             raise ValueError(f"{path}: {img.shape[1]}x{img.shape[0]} px, expected {cam.width}x"
-                             f"{cam.height} like camera {cam.name!r}'s other images")
+                             f"{cam.height} px like most of camera {cam.name!r}'s images")
         return img
 
     @cached_property

@@ -152,6 +152,18 @@ def write_png(path, image: np.ndarray) -> Path:
 MAX_READ_BYTES = 256 << 20
 
 
+def read_grey(path) -> np.ndarray | None:
+    """An image file as 8-bit grey, or None when OpenCV cannot read it: not an image, or one
+    whose header claims more pixels than OPENCV_IO_MAX_IMAGE_PIXELS (stereo_bench/__init__.py),
+    which OpenCV refuses with an exception rather than None."""
+    import cv2
+
+    try:
+        return cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    except cv2.error:
+        return None
+
+
 def read_text(path, what: str = "file", max_bytes: int = MAX_READ_BYTES) -> str:
     """The UTF-8 text of a file, or an UnreadableFileError naming it and ``what`` was expected:
     a folder, unreadable, over ``max_bytes``, or not UTF-8. A missing file raises
