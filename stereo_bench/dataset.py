@@ -38,8 +38,9 @@ from .config import ConfigError, RigConfig, parse_rig
 from .render import AnalyticRenderer, RenderSettings
 from .render.imaging import Light, Motion, Optics, Sensor
 from .rig import GroundTruth, Rig, Trajectory, coverage_warnings
-from .rundir import (DatasetPaths, UnreadableFileError, fingerprint, read_grey, read_json,
-                     write_json, write_npy, write_png, write_text)
+from .rundir import (DatasetPaths, UnreadableFileError, changed_output, fingerprint, read_arrays,
+                     read_grey, read_json, with_outputs, write_json, write_npy, write_png,
+                     write_text)
 
 SCHEMA_VERSION = 4  # 4: the imaging model (environment sections, board_points)
 TEXTURE_PX_PER_MM = 10.0
@@ -176,7 +177,7 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None) -> "Dataset":
     write_json(paths.cameras, [c.to_dict() for c in cams])
     # Timing lives outside the manifest so that the same config and seed give identical files.
     write_json(paths.timing, {"render_s": time.perf_counter() - t0})
-    write_json(paths.manifest, {
+    write_json(paths.manifest, with_outputs({
         "schema_version": SCHEMA_VERSION,
         "fingerprint": dataset_fingerprint(cfg),
         "name": cfg.name,
@@ -192,7 +193,7 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None) -> "Dataset":
         "opencv_version": cv2.__version__,
         "ground_truth": {k: paths.array(k).relative_to(paths.root).as_posix() for k in arrays},
         "images": {c.name: f"images/{c.name}/{{frame:06d}}.png" for c in cams},
-    })
+    }, paths.manifest, [paths.cameras] + [paths.array(k) for k in arrays]))
     return Dataset.load(out)
 
 
@@ -306,15 +307,14 @@ class Dataset:
             if manifest["fingerprint"] != dataset_fingerprint(cfg):
                 raise UnreadableFileError(f"{mpath}: its fingerprint does not match its config "
                                           f"(edited by hand?); render it again")
+            if changed := changed_output(mpath, manifest):
+                raise UnreadableFileError(f"{changed}; render it again")
 
             def arr(name):
                 p = root / manifest["ground_truth"][name]
                 if not p.is_file():
                     raise FileNotFoundError(f"{p}: ground-truth array missing")
-                try:
-                    return np.load(p, allow_pickle=False)
-                except (OSError, ValueError) as e:
-                    raise UnreadableFileError(f"{p}: unreadable ({e})") from None
+                return read_arrays(p, "a ground-truth array")
 
             cams = [Camera.from_dict(d, str(paths.cameras)) for d in read_json(paths.cameras)]
         except (KeyError, TypeError) as e:

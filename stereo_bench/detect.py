@@ -65,7 +65,7 @@ import cv2
 import numpy as np
 
 from .patterns import AsymmetricCircles, Charuco, Checkerboard, Pattern, SymmetricCircles
-from .rundir import write_npz
+from .rundir import read_arrays, write_npz
 
 SEARCH_MAX_SIDE = 1600
 CHARUCO_MIN_SEARCH_SIDE = 1920  # markers of small images are searched on an enlarged copy
@@ -799,11 +799,11 @@ class CameraDetections:
     @classmethod
     def load(cls, path: str | Path) -> "CameraDetections":
         try:
-            with np.load(path, allow_pickle=False) as z:
-                return cls(str(z["camera"]), str(z["pattern"]), str(z["method"]), z["points"],
-                           z["found"], z["ids"],
-                           {int(f): str(m) for f, m in zip(z["error_frames"], z["error_messages"])})
-        except (OSError, KeyError, ValueError) as e:
+            z = read_arrays(path, "a detections file")
+            return cls(str(z["camera"]), str(z["pattern"]), str(z["method"]), z["points"],
+                       z["found"], z["ids"],
+                       {int(f): str(m) for f, m in zip(z["error_frames"], z["error_messages"])})
+        except (TypeError, KeyError, ValueError) as e:
             raise ValueError(f"{path}: not a detections file written by CameraDetections.save "
                              f"({e})") from None
 

@@ -34,7 +34,8 @@ from .detect import CameraDetections, detect_dataset, detection_errors, resolve_
 from .io import opencv_yaml
 from .metrics import (parameter_errors, parameter_rmse, pose_errors, projection_difference,
                       rpe_rms, validity)
-from .rundir import Notes, TrialPaths, fingerprint, reusable, strict, write_json, write_npz
+from .rundir import (Notes, TrialPaths, fingerprint, reusable, strict, with_outputs, write_json,
+                     write_npz)
 
 MIN_POINTS = 8  # fewer detected corners than this hardly constrain a view
 MIN_SPREAD = 0.2  # the board points' minor extent relative to their major one
@@ -104,7 +105,9 @@ def load_or_detect(ds: Dataset, trial: TrialPaths, progress=None,
     seconds = time.perf_counter() - start
     for det in dets:
         det.save(trial.detection(det.camera))
-    write_json(trial.detections_done, {"fingerprint": fp, "detect_s": seconds})  # marks completion
+    write_json(trial.detections_done,  # marks completion
+               with_outputs({"fingerprint": fp, "detect_s": seconds}, trial.detections_done,
+                            [trial.detection(d.camera) for d in dets]))
     return dets, seconds, fp
 
 
@@ -262,5 +265,8 @@ def evaluate_dataset(ds: Dataset, methods: list[str], trial: TrialPaths,
                 entries[m][cam.name].update(score(est.result, est.obs, truth,
                                                   rig.cam_from_board(cam)))
     report["timing"]["calibrate_s"] = time.perf_counter() - start
-    write_json(trial.metrics, report)
+    # The detections too: the later stages and the plots read them beside the calibrations.
+    outputs = [p for p in trial.all_calibrations.rglob("*") if p.is_file()] + \
+        [trial.detection(c.name) for c in ds.cameras]
+    write_json(trial.metrics, with_outputs(report, trial.metrics, outputs))
     return strict(report)

@@ -28,7 +28,7 @@ from .evaluate import (detections_fingerprint, evaluate_dataset, metrics_fingerp
                        unusable_view)
 from .rig import volume_centre
 from .rundir import (Notes, RunPaths, TrialPaths, UnreadableFileError, fingerprint, locked,
-                     read_json, reusable, strict, write_json)
+                     read_arrays, read_json, reusable, strict, write_json)
 from .stereo import (RigCalibration, aligned_rig_errors, calibrate_rig, planar_pose, rig_errors,
                      similarity_transform)
 from .triangulate import triangulate
@@ -46,8 +46,8 @@ def _board_poses(ds: Dataset, trial: TrialPaths, method: str, cam: Camera,
     calibration.intrinsics_views) a planar pose through its estimate; NaN elsewhere."""
     F = ds.frames
     r, t = np.full((F, 3), np.nan), np.full((F, 3), np.nan)
-    with np.load(trial.views(method, cam.name)) as z:
-        r[z["view_ids"]], t[z["view_ids"]] = z["rvecs"], z["tvecs"]
+    z = read_arrays(trial.views(method, cam.name), "a calibration's views")
+    r[z["view_ids"]], t[z["view_ids"]] = z["rvecs"], z["tvecs"]
     for f in np.flatnonzero(det.found & ~np.isfinite(r).all(axis=1)):
         ok = np.isfinite(det.points[f]).all(axis=1)
         if unusable_view(ds.object_points[ok]):

@@ -35,7 +35,7 @@ from .detect import CameraDetections  # noqa: E402
 from .evaluate import MIN_POINTS  # noqa: E402
 from .metrics import projection_difference_map  # noqa: E402
 from .rig import ground_axes, world_up  # noqa: E402
-from .rundir import RunPaths, TrialPaths  # noqa: E402
+from .rundir import RunPaths, TrialPaths, read_arrays  # noqa: E402
 
 
 def _bars(ax, agg_rows: dict, column: str, title: str, trials: int) -> None:
@@ -91,11 +91,11 @@ def residuals(trial: TrialPaths, ds: Dataset, method: str, camera: Camera) -> np
     est = Camera.load_json(trial.calibration(method, camera.name))
     det = CameraDetections.load(trial.detection(camera.name))
     out = []
-    with np.load(trial.views(method, camera.name)) as z:
-        for f, r, t in zip(z["view_ids"], z["rvecs"], z["tvecs"]):
-            ok = np.isfinite(det.points[f]).all(1)
-            uv = project_points(ds.object_points[ok], est.intrinsics, est.dist, r, t)
-            out.append(np.linalg.norm(uv - det.points[f, ok], axis=1))
+    z = read_arrays(trial.views(method, camera.name), "a calibration's views")
+    for f, r, t in zip(z["view_ids"], z["rvecs"], z["tvecs"]):
+        ok = np.isfinite(det.points[f]).all(1)
+        uv = project_points(ds.object_points[ok], est.intrinsics, est.dist, r, t)
+        out.append(np.linalg.norm(uv - det.points[f, ok], axis=1))
     return np.concatenate(out) if out else np.zeros(0)
 
 
@@ -301,8 +301,8 @@ def plot_views(trial: TrialPaths, ds: Dataset, methods: list[str], folder: Path)
         method = "opencv" if "opencv" in done else done[0]
         est = Camera.load_json(trial.calibration(method, cam.name))
         det = CameraDetections.load(trial.detection(cam.name))
-        with np.load(trial.views(method, cam.name)) as z:
-            view_ids, rvecs, tvecs = z["view_ids"], z["rvecs"], z["tvecs"]
+        z = read_arrays(trial.views(method, cam.name), "a calibration's views")
+        view_ids, rvecs, tvecs = z["view_ids"], z["rvecs"], z["tvecs"]
         frames = np.isin(np.arange(ds.frames), view_ids)
         obs, _ = observations(det, ds.object_points, cam, frames)
         if list(obs.view_ids) != [int(v) for v in view_ids]:

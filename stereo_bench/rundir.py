@@ -21,8 +21,10 @@ trial's layout at its top, beside the run's files::
 
 Every stage ends by writing one JSON marker (manifest.json, detections/done.json, metrics.json,
 rig/<method>.json) that carries the fingerprint of exactly what the stage depends on. A stage is
-reused only when its marker is readable and its fingerprint matches; a missing, torn or stale
-marker means the stage is redone, and :class:`Notes` tells the user which and why.
+reused only when its marker is readable, its fingerprint matches and the output files it lists
+are the ones it wrote (their digests, :func:`with_outputs`); a missing, torn or stale marker, or
+an output changed since, means the stage is redone, and :class:`Notes` tells the user which and
+why.
 
 JSON is written strictly: NaN and infinities become ``null``, and in a mapping a sibling key
 ``<key>_reason`` says what the value was ("not a number" or "infinite"), so every file parses with
@@ -191,6 +193,26 @@ def read_text(path, what: str = "file", max_bytes: int = MAX_READ_BYTES) -> str:
                                   f"{what}") from None
 
 
+def read_arrays(path, what: str = "array file"):
+    """The array of an .npy file, or every array of an .npz as a dict (read whole, so that a
+    torn member fails here and not at first use); an UnreadableFileError naming the file when
+    it is not one numpy wrote (torn, truncated, flipped bytes, a pickle)."""
+    import zipfile
+    import zlib
+
+    try:
+        loaded = np.load(path, allow_pickle=False)
+        if not isinstance(loaded, np.lib.npyio.NpzFile):
+            return loaded
+        with loaded:
+            return {k: loaded[k] for k in loaded.files}
+    except FileNotFoundError:
+        raise
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as e:
+        raise UnreadableFileError(f"{path}: unreadable ({type(e).__name__}: {e}); expected "
+                                  f"{what}") from None
+
+
 def read_json(path, what: str = "JSON file"):
     """Parse a JSON file; raise UnreadableFileError naming the file when it cannot be (too
     large, not UTF-8, not JSON, or nested past the parser's recursion limit)."""
@@ -256,7 +278,45 @@ def reusable(path: Path, expected: str, notes: Notes | None, stage: str):
             notes.stage_redone(f"{path}: written for other inputs (the configuration, the "
                                f"methods or the code changed); redoing the {stage} stage")
         return None
-    return marker
+    if changed := changed_output(path, marker):
+        if notes:
+            notes.stage_redone(f"{changed}; redoing the {stage} stage")
+        return None
+    return {k: v for k, v in marker.items() if k != "outputs"}
+
+
+def _digest(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def with_outputs(marker: dict, path: Path, outputs) -> dict:
+    """The marker to be written at ``path`` with the digest of each of its stage's output files
+    (named relative to the marker's folder), so that an output torn, edited or replaced after
+    the stage is not reused as if the stage had made it (:func:`changed_output`)."""
+    folder = Path(path).parent
+    return {**marker, "outputs": {Path(p).relative_to(folder).as_posix(): _digest(Path(p))
+                                  for p in sorted(outputs)}}
+
+
+def changed_output(path: Path, marker: dict) -> str | None:
+    """Why the outputs a marker lists are not the ones its stage wrote (a file missing, or of
+    other content), or None. A marker written before outputs were listed lists none."""
+    outputs = marker.get("outputs", {})
+    if not isinstance(outputs, dict):
+        return f"{path}: its 'outputs' are not a mapping of files to digests"
+    folder = Path(path).parent
+    for name, digest in outputs.items():
+        file = folder / str(name)
+        inside = all(is_safe_name(part) for part in str(name).split("/"))
+        if not inside or not file.is_file():
+            return f"{file}: missing since its stage wrote it"
+        if _digest(file) != digest:
+            return f"{file}: changed since its stage wrote it"
+    return None
 
 
 # ----------------------------------------------------------------------------------------------

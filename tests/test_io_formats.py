@@ -421,6 +421,13 @@ MALFORMED = [
      r"b.cameramodel: lensmodel"),
     ("opencv", "c.yaml", "%YAML:1.0\n---\ncamera_matrix: [1, 2\n", r"c.yaml: not an OpenCV"),
     ("opencv", "d.yaml", "%YAML:1.0\n---\nimage_width: 3\n", r"d.yaml: expected 'camera_matrix'"),
+    # OpenCV raises for an opencv-matrix whose data is not numbers, or not rows x cols of them.
+    ("opencv", "e.yaml", "%YAML:1.0\n---\nimage_width: 3\nimage_height: 3\ncamera_matrix: "
+     "!!opencv-matrix\n  rows: 3\n  cols: 3\n  dt: d\n  data: [1, 0, 1, 0, 1, 1, 0, 0, []]\n",
+     r"e.yaml: camera_matrix: expected an opencv-matrix"),
+    ("opencv", "f.yaml", "%YAML:1.0\n---\nimage_width: 3\nimage_height: 3\ncamera_matrix: "
+     "!!opencv-matrix\n  rows: 3\n  cols: 3\n  dt: d\n  data: [1, 0, 1, 0, 1, 1, 0, 0]\n",
+     r"f.yaml: camera_matrix: expected an opencv-matrix"),
 ]
 
 

@@ -145,8 +145,47 @@ def test_a_torn_marker_is_redone_and_named(tmp_path, capsys, marker):
     capsys.readouterr()
     assert main([str(rig), "--out", str(out), "--methods", "opencv"]) == 0
     err = capsys.readouterr().err.replace("\n", "")
-    assert "unreadable" in err and marker.split("/")[-1] in err
+    # A torn marker is unreadable; a torn file a marker lists is no longer the one it wrote.
+    assert ("unreadable" in err or "changed since its stage wrote it" in err)
+    assert marker.split("/")[-1] in err
     assert results(out)["trials"][0]["rig"]["opencv"]["rmse_cal_mm"] == before
+
+
+def _flip_last_byte(path):
+    data = bytearray(path.read_bytes())
+    data[-1] ^= 0x01  # an .npy stays loadable with another value, a JSON number changes
+    path.write_bytes(bytes(data))
+
+
+# A stage's outputs torn or edited after it wrote them (a kill mid-copy, a hand edit, a disk
+# error) are not reused as the stage's: its marker holds their digests.
+@pytest.mark.parametrize("output", ["dataset/ground_truth/visible.npy",
+                                    "dataset/ground_truth/image_points.npy",
+                                    "detections/left.npz", "calibrations/opencv/left.json"])
+def test_an_output_changed_after_its_stage_is_redone_and_named(tmp_path, capsys, output):
+    out = tmp_path / "run"
+    rig = small_rig(tmp_path, frames=5)
+    assert main([str(rig), "--out", str(out), "--methods", "opencv"]) == 0
+    before = results(out)["trials"][0]
+    path = RunPaths(out).trial(7).root / output
+    if path.suffix == ".json":
+        path.write_text(path.read_text().replace('"fx": ', '"fx": 1', 1))
+    else:
+        _flip_last_byte(path)
+    capsys.readouterr()
+    assert main([str(rig), "--out", str(out), "--methods", "opencv"]) == 0
+    err = capsys.readouterr().err.replace("\n", "")
+    assert f"{path.name}: changed since its stage wrote it" in err
+    after = results(out)["trials"][0]
+    assert after["rig"]["opencv"]["rmse_cal_mm"] == before["rig"]["opencv"]["rmse_cal_mm"]
+    assert _without_times(after["calibration"]) == _without_times(before["calibration"])
+
+
+def _without_times(d):
+    """A report without its wall times (the keys ending in _s), which a redone stage renews."""
+    if isinstance(d, dict):
+        return {k: _without_times(v) for k, v in d.items() if not k.endswith("_s")}
+    return d
 
 
 def test_a_resized_image_is_refused_naming_it(tmp_path, capsys):

@@ -74,12 +74,23 @@ def open_storage(path):
     return fs
 
 
+def _mat(node):
+    """A node's opencv-matrix, or None: OpenCV raises, rather than returning None, for a
+    matrix whose data is not a plain list of numbers or does not hold rows x cols of them."""
+    import cv2
+
+    try:
+        return node.mat()
+    except cv2.error:
+        return None
+
+
 def node_matrix(node, shape: tuple, where: str) -> np.ndarray:
     """The matrix of a FileStorage node as float64 of ``shape`` (a ValueError naming ``where``
     when the node is missing or not such a matrix)."""
     if node.empty():
         raise ValueError(f"{where}: missing")
-    m = node.mat()
+    m = _mat(node)
     if m is None:
         raise ValueError(f"{where}: expected an opencv-matrix of shape {shape}")
     return common.numbers(m, shape, where)
@@ -104,7 +115,7 @@ def node_distortion(node, where: str) -> np.ndarray:
     the model holds the first 8."""
     if node.empty():
         raise ValueError(f"{where}: missing")
-    m = node.mat()
+    m = _mat(node)
     if m is None:
         raise ValueError(f"{where}: expected an opencv-matrix of coefficients")
     d = np.asarray(m, dtype=np.float64).reshape(-1)
