@@ -42,9 +42,10 @@ from .evaluate import (Estimate, calibrate_cameras, clear_calibrations, intrinsi
 from .image_folders import ImageFolders
 from .metrics import projection_difference
 from .multiview_ref import opencv_multiview
+from .orientation import described
 from .pipeline import rig_of, rig_summary
 from .plots import plot_capture
-from .rundir import CapturePaths, Notes, strict, write_json
+from .rundir import CapturePaths, Notes, strict, with_outputs, write_json
 from .stereo import rig_errors
 from .uncertainty import parameter_covariance, projection_uncertainty
 
@@ -124,11 +125,13 @@ REPORTED_FOLD = 0.0005
 
 def _grouped(items: list[tuple[str, str, str]]) -> list[str]:
     """(method, camera, text) -> one line per camera and text, naming every method it holds
-    for: the same fact once, not once per method."""
+    for: the same fact once, not once per method. A camera of "" is a fact of the rig (its text
+    names the cameras)."""
     methods: dict[tuple[str, str], list[str]] = {}
     for m, cam, text in items:
         methods.setdefault((cam, text), []).append(m)
-    return [f"{', '.join(ms)}, camera {cam}: {text}" for (cam, text), ms in methods.items()]
+    return [f"{', '.join(ms)}{f', camera {cam}' if cam else ''}: {text}"
+            for (cam, text), ms in methods.items()]
 
 
 def flags(results: dict) -> list[str]:
@@ -254,6 +257,74 @@ def view_evidence(source: ImageFolders, dets, calibration: CalibrationConfig
     return geometry, refused, dropped
 
 
+#: A rig is not reported when its own figures contradict it: the triangulated board's size off by
+#: more than this (a correct rig keeps it to a few hundredths of a percent on real pairs; a view
+#: numbered from the wrong corner doubles it) ...
+DOUBT_SCALE_PCT = 2.0
+#: ... or OpenCV's calibrateMultiview on the same detections, with the same intrinsics, placing a
+#: camera more than this far from it (real pairs: about 0.01 degree and 0.1 % of the baseline).
+DOUBT_ROTATION_DEG = 1.0
+DOUBT_CENTRE_FRACTION = 0.02
+
+
+def rig_doubts(entry: dict) -> list[str]:
+    """Why a rig's own figures say it is wrong, in words (module constants DOUBT_*)."""
+    doubts = []
+    scale = entry["board_geometry"].get("scale_error_pct")
+    if isinstance(scale, float) and abs(scale) > DOUBT_SCALE_PCT:
+        doubts.append(f"the board triangulated through it is {scale:+.1f} % off its known size "
+                      f"(more than {DOUBT_SCALE_PCT:g} %)")
+    for cam, ref in entry.get("opencv_multiview", {}).get("cameras", {}).items():
+        baseline = entry["baseline_mm"].get(cam) or 0.0
+        if ref["difference_rotation_deg"] > DOUBT_ROTATION_DEG or \
+                ref["difference_centre_mm"] > DOUBT_CENTRE_FRACTION * baseline:
+            doubts.append(f"OpenCV's calibrateMultiview on the same detections places camera "
+                          f"{cam!r} {ref['difference_rotation_deg']:.2f} degrees and "
+                          f"{ref['difference_centre_mm']:.3g} mm from it (more than "
+                          f"{DOUBT_ROTATION_DEG:g} degree or {100 * DOUBT_CENTRE_FRACTION:g} % of "
+                          f"the baseline)")
+    return doubts
+
+
+def _capture_rig(source: ImageFolders, trial, method: str, calibration: CalibrationConfig,
+                 estimates: dict) -> dict:
+    """One method's rig of the cameras it calibrated (a camera without an estimate is left out
+    and named), checked against its own figures (``rig_doubts``): a rig that fails them is
+    reported as an error in words, its figures kept under "doubted"."""
+    missing = {cam: e["error"] for cam, e in estimates.items() if "error" in e}
+    joined = [c.name for c in source.cameras if c.name not in missing]
+    if len(joined) < 2:
+        return {"method": method, "left_out": missing,
+                "error": f"fewer than two cameras calibrated by {method} "
+                         f"({', '.join(map(repr, missing))} not)"}
+    try:
+        rig, image_points = rig_of(source, trial, method, calibration, joined)
+        entry, _ = rig_summary(rig, image_points, source.object_points, method, calibration)
+        entry["opencv_multiview"] = _opencv_rig(rig, image_points, source)
+    except (ValueError, np.linalg.LinAlgError, RuntimeError) as e:
+        return {"method": method, "left_out": missing, "error": str(e)}
+    entry["left_out"] = missing
+    if doubts := rig_doubts(entry):
+        return {"method": method, "left_out": missing, "doubted": entry,
+                "error": "not reported, its own figures contradict it: " + "; ".join(doubts)}
+    return entry
+
+
+def _rig_warnings(rigs: dict, source: ImageFolders) -> list[str]:
+    """The cameras each rig left out, the views it renumbered or dropped, and the rigs not
+    reported, each fact once with the methods it holds for."""
+    items = []
+    for m, entry in rigs.items():
+        for cam, why in entry.get("left_out", {}).items():
+            items.append((m, cam, "left out of the rig: it has no estimate (above)"))
+        log = (entry.get("doubted") or entry).get("log", {})
+        for line in described(log.get("orientation", []), source.frame_name):
+            items.append((m, "", line))
+        if "error" in entry:
+            items.append((m, "", f"no rig: {entry['error']}"))
+    return _grouped(items)
+
+
 def _board_hint(pattern) -> str:
     size = getattr(pattern, "pattern_size", None)
     if pattern.kind == "checkerboard" and size:
@@ -333,20 +404,10 @@ def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration
     t0 = time.perf_counter()
     if len(source.cameras) >= 2:
         for m in methods:
-            failed = [(cam, e["error"]) for cam, e in entries[m].items() if "error" in e]
-            try:
-                if failed:
-                    cam, why = failed[0]
-                    raise ValueError(f"camera {cam!r} has no estimate by {m}"
-                                     + (": its views cannot determine it (notes)"
-                                        if cam in refused else f": {why}"))
-                rig, image_points = rig_of(source, trial, m, calibration)
-                entry, _ = rig_summary(rig, image_points, source.object_points, m, calibration)
-                entry["opencv_multiview"] = _opencv_rig(rig, image_points, source)
-            except (ValueError, np.linalg.LinAlgError, RuntimeError) as e:
-                entry = {"method": m, "error": f"{type(e).__name__}: {e}"}
-            write_json(trial.rig(m), entry)
-            results["rig"][m] = strict(entry)
+            results["rig"][m] = entry = strict(_capture_rig(source, trial, m, calibration,
+                                                            entries[m]))
+            write_json(trial.rig(m), with_outputs(entry, trial.rig(m)))
+        results["warnings"] += _rig_warnings(results["rig"], source)
     results["timing"] = {"detect_s": detect_s, "calibrate_s": calibrate_s,
                          "diagnostics_s": diagnostics_s, "rig_s": time.perf_counter() - t0}
     results["notes"] = notes.items

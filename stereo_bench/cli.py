@@ -243,6 +243,8 @@ def board_from_args(args):
                 data["diagonal_spacing_mm"] = value * 2 ** 0.5
             else:
                 data[option] = value
+        if args.inverted:
+            data["inverted"] = True
         source = "the --board options"
     try:
         board = PatternConfig.model_validate(data).build()
@@ -305,13 +307,21 @@ def cmd_calibrate_images(args) -> int:
                               sort_keys=False), methods=methods)
     console.print(text, markup=False, soft_wrap=True, highlight=False)
     _warn(results["warnings"] + results["notes"])
-    done = [e for cams in results["calibration"].values() for e in cams.values()
-            if "error" not in e]
-    if not done:
+    calibrated = {cam for cams in results["calibration"].values()
+                  for cam, e in cams.items() if "error" not in e}
+    if not calibrated:
         say("error", "red", f"no camera could be calibrated with any method; wrote {out}")
         return 1
     console.print(f"wrote {paths.results}, {paths.report}, {paths.html}; estimates in "
                   f"{paths.trial.all_calibrations}", markup=False, highlight=False)
+    # Everything that could be computed is written; the exit status still says that a camera
+    # asked for, or every method's rig, is missing.
+    missing = [c.name for c in source.cameras if c.name not in calibrated]
+    no_rig = results["rig"] and all("error" in e for e in results["rig"].values())
+    if missing or no_rig:
+        say("error", "red", (f"camera(s) {', '.join(map(repr, missing))} not calibrated by any "
+                             f"method" if missing else "no method gave a rig") + " (notes)")
+        return 1
     return 0
 
 
@@ -429,6 +439,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "the row pitch)")
     i.add_argument("--diameter-mm", dest="diameter_mm", type=float,
                    help="circle grids: disc diameter, mm (default: measured from the images)")
+    i.add_argument("--inverted", action="store_true",
+                   help="the board is printed white on black (a board not found as given is "
+                        "also tried inverted)")
     i.add_argument("--methods", default="zhang,tsai,bouguet,opencv",
                    help="comma-separated methods (default: %(default)s; also BASE-MODEL names "
                         "such as zhang-brown, and opencv-rational)")

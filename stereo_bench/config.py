@@ -30,6 +30,8 @@ MAX_BLUR_PX = 50.0
 # A lens and a position: the same bounds hold for every camera read from an exchange file.
 MAX_FOCAL_PX = 1e6
 MAX_SKEW_PX = 1e4
+#: fx / fy (or fy / fx) at most: anamorphic lenses reach 2, a sensor's pixels are near square.
+MAX_PIXEL_ASPECT = 10.0
 MAX_DISTORTION = 1e4
 MAX_DISTANCE_MM = 1e6
 MAX_FILE_BYTES = 1 << 20
@@ -100,6 +102,9 @@ class LensConfig(_Strict):
 
     @model_validator(mode="after")
     def _image(self):
+        if max(self.fx / self.fy, self.fy / self.fx) > MAX_PIXEL_ASPECT:
+            raise ValueError(f"fx / fy: {self.fx / self.fy:.4g}; expected pixels at most "
+                             f"{MAX_PIXEL_ASPECT:g} times as tall as wide or as wide as tall")
         if self.width * self.height > MAX_IMAGE_PIXELS:
             raise ValueError(f"width x height: {self.width}x{self.height} exceeds "
                              f"{MAX_IMAGE_PIXELS:,} pixels")

@@ -240,7 +240,8 @@ class Dataset:
     def render_time_s(self) -> float:
         try:
             return float(read_json(self.paths.timing)["render_s"])
-        except (FileNotFoundError, UnreadableFileError, KeyError, TypeError, ValueError):
+        except (FileNotFoundError, UnreadableFileError, KeyError, TypeError, ValueError,
+                OverflowError):  # a wall time only: an unreadable one is unknown, not fatal
             return float("nan")
 
     @property

@@ -125,6 +125,18 @@ def detect(image: np.ndarray, pattern: Pattern, method: str | None = None) -> De
         raise ValueError(f"detect: expected an 8-bit (H, W) or (H, W, 3) image, got "
                          f"{image.dtype} {image.shape}")
     gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+    # The detectors look for dark features on a light board: an inverted board is searched in
+    # the inverted image, and a board not found as described is also tried in the other
+    # polarity (an inverted board nobody said was inverted; a print seen against the light).
+    first = 255 - gray if pattern.inverted else gray
+    found = _detect_in(first, pattern, method)
+    if found.found:
+        return found
+    other = _detect_in(255 - first, pattern, method)
+    return other if other.found else found
+
+
+def _detect_in(gray, pattern: Pattern, method: str) -> Detection:
     try:
         if pattern.kind == "checkerboard":
             return _detect_checkerboard(gray, _SearchImage.of(gray), pattern, method)
@@ -803,7 +815,7 @@ class CameraDetections:
             return cls(str(z["camera"]), str(z["pattern"]), str(z["method"]), z["points"],
                        z["found"], z["ids"],
                        {int(f): str(m) for f, m in zip(z["error_frames"], z["error_messages"])})
-        except (TypeError, KeyError, ValueError) as e:
+        except (FileNotFoundError, TypeError, KeyError, ValueError) as e:
             raise ValueError(f"{path}: not a detections file written by CameraDetections.save "
                              f"({e})") from None
 

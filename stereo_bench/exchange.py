@@ -24,7 +24,7 @@ from .dataset import Dataset
 from .evaluate import load_or_detect
 from .metrics import parameter_errors, projection_difference, validity
 from .pipeline import board_geometry, score_rig, triangulated_board
-from .rundir import CapturePaths, Notes, RunPaths, TrialPaths, read_json
+from .rundir import CapturePaths, Notes, RunPaths, TrialPaths, changed_output, read_json
 from .stereo import cam_from_cam0
 
 
@@ -57,6 +57,8 @@ def _rig_file_cameras(path: Path) -> list[Camera] | str:
     entry = read_json(path)
     if not isinstance(entry, dict) or "method" not in entry:
         raise ValueError(f"{path}: not a rig calibration written by stereo-bench")
+    if changed := changed_output(path, entry):
+        raise ValueError(f"{changed}; run the command that wrote it again")
     if "error" in entry:
         return str(entry["error"])
     if not isinstance(entry.get("cameras"), list) or not all(
@@ -95,6 +97,10 @@ def _trial_estimates(trial: TrialPaths, method: str, where: str) -> dict[str, li
             raise ValueError(f"{rig}: the rig calibration of {method} failed: {cams}")
         return {"rig": cams}
     folder = trial.calibrations(method)
+    # A run's calibrations are listed, with their digests, by its calibration stage's marker.
+    if trial.metrics.is_file() and (changed := changed_output(trial.metrics,
+                                                              read_json(trial.metrics))):
+        raise ValueError(f"{changed}; run the command that wrote it again")
     files = sorted(p for p in folder.glob("*.json")) if folder.is_dir() else []
     if not files:
         found = sorted(p.name for p in trial.all_calibrations.iterdir()) \
@@ -142,6 +148,13 @@ def score_calibration(ds: Dataset, path, fmt: str | None, out) -> dict:
         dets, _, _ = load_or_detect(ds, TrialPaths(Path(out)), notes=notes)
         image_points = np.stack([d.points for d in dets])
         points, dropped = triangulated_board(cams, image_points)
+        if not np.isfinite(points).all(-1).any():
+            # A rig file that reads as cameras but whose rays never meet in front of them.
+            report["rig"] = {"error": "no board point of the dataset triangulates through this "
+                                      "rig (its cameras' rays do not meet in front of them)",
+                             "detections_outside_model": dropped}
+            report["notes"] = notes.items
+            return report
         rig = score_rig(cams, points, ds)
         rig["board_geometry"] = board_geometry(points, ds.object_points)
         rig["detections_outside_model"] = dropped

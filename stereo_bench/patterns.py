@@ -109,6 +109,9 @@ class Pattern(abc.ABC):
     # White quiet zone around the printed features, on every side. A field's metadata "min" is
     # its least value (default: any positive number).
     margin_mm: float = dataclasses.field(default=10.0, metadata={"min": 0.0})
+    # Printed white on black (the quiet zone black too): boards made by inverting a print, or
+    # cut from a dark plate. The features are the same; every colour is the other one.
+    inverted: bool = False
 
     def __post_init__(self) -> None:
         for field in dataclasses.fields(self):
@@ -187,7 +190,8 @@ class Pattern(abc.ABC):
             raise ValueError(f"px_per_mm must be positive, got {px_per_mm!r}")
         black = np.zeros(self.texture_shape(px_per_mm))
         paint(black, self.texture_origin_mm * px_per_mm, float(px_per_mm))
-        return np.rint(255.0 * (1.0 - np.clip(black, 0.0, 1.0))).astype(np.uint8)
+        texture = np.rint(255.0 * (1.0 - np.clip(black, 0.0, 1.0))).astype(np.uint8)
+        return 255 - texture if self.inverted else texture
 
     def save_texture(self, path: str | Path, px_per_mm: float) -> Path:
         """Write ``texture(px_per_mm)`` as a PNG and return the path."""

@@ -26,9 +26,11 @@ from .dataset import Dataset, dataset_fingerprint, write_dataset
 from .detect import CameraDetections
 from .evaluate import (detections_fingerprint, evaluate_dataset, metrics_fingerprint,
                        unusable_view)
+from .orientation import agree, numbered_like
 from .rig import volume_centre
-from .rundir import (Notes, RunPaths, TrialPaths, UnreadableFileError, fingerprint, locked,
-                     read_arrays, read_json, reusable, strict, write_json)
+from .rundir import (Notes, RunPaths, TrialPaths, UnreadableFileError, changed_output,
+                     fingerprint, locked, read_arrays, read_json, reusable, strict, with_outputs,
+                     write_json)
 from .stereo import (RigCalibration, aligned_rig_errors, calibrate_rig, planar_pose, rig_errors,
                      similarity_transform)
 from .triangulate import triangulate
@@ -71,25 +73,31 @@ def _by_region(true_pts: np.ndarray, err: np.ndarray, centre: np.ndarray) -> lis
     return rows
 
 
-def rig_of(source, trial: TrialPaths, method: str, calibration: CalibrationConfig
-           ) -> tuple[RigCalibration, np.ndarray]:
+def rig_of(source, trial: TrialPaths, method: str, calibration: CalibrationConfig,
+           names: list[str] | None = None) -> tuple[RigCalibration, np.ndarray]:
     """The rig calibration of one method's per-camera estimates (saved under ``trial`` by
-    evaluate.calibrate_cameras) and the detections it used, (C, F, N, 2) px. ``source`` is a
-    rendered ``Dataset`` or a real capture: this stage does not know which."""
-    dets = [CameraDetections.load(trial.detection(c.name)) for c in source.cameras]
+    evaluate.calibrate_cameras) and the detections it used, (C, F, N, 2) px, with each frame's
+    views numbered alike (orientation.agree; what it changed is in the rig's log under
+    "orientation"). ``source`` is a rendered ``Dataset`` or a real capture: this stage does not
+    know which. ``names``: the cameras to join (default: all)."""
+    chosen = [c for c in source.cameras if names is None or c.name in names]
+    dets = [CameraDetections.load(trial.detection(c.name)) for c in chosen]
     cams, rv, tv = [], [], []
-    for cam, det in zip(source.cameras, dets):
+    for cam, det in zip(chosen, dets):
         est = Camera.load_json(trial.calibration(method, cam.name))
         r, t = _board_poses(source, trial, method, est, det)
         cams.append(est)
         rv.append(r)
         tv.append(t)
-    image_points = np.stack([d.points for d in dets])
-    found = np.stack([d.found for d in dets])
+    image_points, rvecs, tvecs, found, changes = agree(
+        source.object_points, np.stack([d.points for d in dets]), np.stack(rv), np.stack(tv),
+        np.stack([d.found for d in dets]), [c.name for c in chosen],
+        identified=source.pattern.kind == "charuco")
     params = get_calibrator(method).model_parameters if calibration.refine_intrinsics else None
-    rig = calibrate_rig(cams, source.object_points, image_points, np.stack(rv), np.stack(tv),
+    rig = calibrate_rig(cams, source.object_points, image_points, rvecs, tvecs,
                         found, refine_intrinsics=[params] * len(cams) if params else None,
                         loss=calibration.loss, loss_scale_px=calibration.loss_scale_px)
+    rig.log["orientation"] = changes
     return rig, image_points
 
 
@@ -180,6 +188,8 @@ def score_rig(cameras: list[Camera], est_pts: np.ndarray, ds: Dataset) -> dict:
     truth = ds.cameras
     world_pts = ds.rig().board_points_world()  # (F, N, 3)
     true_pts = truth[0].world_to_cam(world_pts)
+    if ds.pattern.kind != "charuco":  # which corner of a symmetric board is first: a convention
+        est_pts = numbered_like(est_pts, true_pts, ds.object_points)
     ok = np.all(np.isfinite(est_pts), axis=-1)
     err = np.linalg.norm(est_pts - true_pts, axis=-1)[ok]
     # Per frame, the centroid of the points triangulated in it against the centroid of the same
@@ -298,7 +308,7 @@ def run_trial(cfg: RigConfig, out: Path, methods: list[str], progress=None,
             entry["fingerprint"] = rig_fp
             entry["settings"] = settings
             entry["wall_time_s"] = time.perf_counter() - t0
-            write_json(trial.rig(m), entry)
+            write_json(trial.rig(m), with_outputs(entry, trial.rig(m)))
             report["rig"][m] = strict(entry)
     # Stage times as measured when each stage ran (reused stages keep their original times).
     report["timing"] = {"render_s": ds.render_time_s, **report["timing"],
@@ -373,6 +383,8 @@ def load_run(run_dir) -> list[Trial]:
             entry = read_json(path)
             if not isinstance(entry, dict) or "method" not in entry:
                 raise UnreadableFileError(f"{path}: not a rig calibration written by stereo-bench")
+            if changed := changed_output(path, entry):
+                raise UnreadableFileError(f"{changed}; run the rig stage again")
             # Made from the trial's current calibrations, with the settings it records.
             if entry.get("fingerprint") != rig_fingerprint(metrics.get("fingerprint"),
                                                            entry["method"],

@@ -282,7 +282,7 @@ def reusable(path: Path, expected: str, notes: Notes | None, stage: str):
         if notes:
             notes.stage_redone(f"{changed}; redoing the {stage} stage")
         return None
-    return {k: v for k, v in marker.items() if k != "outputs"}
+    return stripped(marker)
 
 
 def _digest(path: Path) -> str:
@@ -293,18 +293,33 @@ def _digest(path: Path) -> str:
     return h.hexdigest()
 
 
-def with_outputs(marker: dict, path: Path, outputs) -> dict:
+def _content_digest(marker: dict) -> str:
+    """The digest of a marker's own content (without it), as written: strict JSON, sorted."""
+    body = {k: v for k, v in strict(marker).items() if k != "content"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
+
+
+def with_outputs(marker: dict, path: Path, outputs=()) -> dict:
     """The marker to be written at ``path`` with the digest of each of its stage's output files
-    (named relative to the marker's folder), so that an output torn, edited or replaced after
-    the stage is not reused as if the stage had made it (:func:`changed_output`)."""
+    (named relative to the marker's folder) and of its own content, so that an output or the
+    marker's figures edited, torn or replaced after the stage are not reused as if the stage
+    had made them (:func:`changed_output`)."""
     folder = Path(path).parent
-    return {**marker, "outputs": {Path(p).relative_to(folder).as_posix(): _digest(Path(p))
-                                  for p in sorted(outputs)}}
+    marker = {**marker, "outputs": {Path(p).relative_to(folder).as_posix(): _digest(Path(p))
+                                    for p in sorted(outputs)}}
+    return {**marker, "content": _content_digest(marker)}
+
+
+def stripped(marker: dict) -> dict:
+    """A marker without the digests :func:`with_outputs` added."""
+    return {k: v for k, v in marker.items() if k not in ("outputs", "content")}
 
 
 def changed_output(path: Path, marker: dict) -> str | None:
     """Why the outputs a marker lists are not the ones its stage wrote (a file missing, or of
     other content), or None. A marker written before outputs were listed lists none."""
+    if "content" in marker and marker["content"] != _content_digest(marker):
+        return f"{path}: changed since its stage wrote it"
     outputs = marker.get("outputs", {})
     if not isinstance(outputs, dict):
         return f"{path}: its 'outputs' are not a mapping of files to digests"

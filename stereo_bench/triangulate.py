@@ -262,8 +262,16 @@ def refine_points(
         if len(idx) == 0:
             break
         D = np.diagonal(H, axis1=1, axis2=2)
-        step = -np.linalg.solve(H + lam[:, None, None] * D[:, None, :] * np.eye(3),
-                                g[..., None])[..., 0]
+        A = H + lam[:, None, None] * D[:, None, :] * np.eye(3)
+        # A point whose views give no curvature along some direction (a camera that projects
+        # it with a zero Jacobian) has no step to take: it stays where the DLT put it, and the
+        # others go on (one singular system would otherwise fail the whole batch).
+        solvable = np.abs(np.linalg.det(A)) > 0
+        if not solvable.all():
+            idx, cost, g, H, lam, A = (a[solvable] for a in (idx, cost, g, H, lam, A))
+            if len(idx) == 0:
+                break
+        step = -np.linalg.solve(A, g[..., None])[..., 0]
         Xn = X[idx] + step
         cn, gn, Hn = evaluate(idx, Xn)
         # Accept ties at rounding level, so a point already at its optimum stops at once.

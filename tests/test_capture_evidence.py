@@ -128,18 +128,20 @@ def test_one_orientation_is_refused(case, words, images, tmp_path, capsys):
 
 
 def test_stereo_with_one_refused_camera(images, tmp_path, capsys):
-    """A rig whose right camera has a single view: the left one is calibrated (exit 0), the
-    right one is named on stderr once and in the report, and the rig says which camera it
-    lacks."""
+    """A rig whose right camera has a single view: the left one is calibrated and written, the
+    right one is named on stderr once and in the report, the rig says which camera it lacks,
+    and the exit status (1) says that a camera asked for is missing."""
     left = folder(tmp_path / "left", images["good"])
     right = folder(tmp_path / "right", images["good"][2:3], prefix="img0")  # frame 3 only
     code, err, res, out = command(tmp_path, capsys, f"left={left}", f"right={right}")
-    assert code == 0
+    assert code == 1
+    assert "camera(s) 'right' not calibrated by any method" in err
     assert set(res["refused"]) == {"right"}
     assert err.count("warning: camera 'right' not calibrated: 1 usable view;") == 1
     assert "error" not in res["calibration"]["opencv"]["left"]
     for m, rig in res["rig"].items():
-        assert "camera 'right' has no estimate" in rig["error"], m
+        assert "fewer than two cameras calibrated" in rig["error"], m
+        assert "'right' not" in rig["error"] and "right" in rig["left_out"], m
     report = (out / "report.md").read_text()
     assert "camera 'right' not calibrated" in report
 

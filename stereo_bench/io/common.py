@@ -17,7 +17,7 @@ import numpy as np
 
 from ..camera import DIST_NAMES, Camera, nearest_rotation
 from ..config import (MAX_DISTANCE_MM, MAX_DISTORTION, MAX_FOCAL_PX, MAX_IMAGE_PIXELS,
-                      MAX_IMAGE_SIDE, MAX_SKEW_PX)
+                      MAX_IMAGE_SIDE, MAX_PIXEL_ASPECT, MAX_SKEW_PX)
 from ..stereo import cam_from_cam0 as _cam_from_cam0
 
 MM_PER_M = 1000.0
@@ -74,6 +74,9 @@ def plausible(camera: Camera, where: str) -> None:
         value = getattr(camera, name)
         if not 0 < value <= MAX_FOCAL_PX:
             raise ValueError(f"{at}: {name} = {value!r}; expected 0 < {name} <= {MAX_FOCAL_PX:g} px")
+    if max(camera.fx / camera.fy, camera.fy / camera.fx) > MAX_PIXEL_ASPECT:
+        raise ValueError(f"{at}: fx / fy = {camera.fx / camera.fy:.4g}; expected pixels at most "
+                         f"{MAX_PIXEL_ASPECT:g} times as tall as wide or as wide as tall")
     if abs(camera.skew) > MAX_SKEW_PX:
         raise ValueError(f"{at}: skew = {camera.skew!r}; expected |skew| <= {MAX_SKEW_PX:g} px")
     for name, c, size in (("cx", camera.cx, w), ("cy", camera.cy, h)):
@@ -149,8 +152,8 @@ def numbers(value, shape: tuple, where: str) -> np.ndarray:
     """Finite float64 numbers of ``shape`` read from a file, or a ValueError naming ``where``."""
     try:
         a = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{where}: expected numbers of shape {shape}, got {value!r}") from None
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an integer of 400 digits
+        raise ValueError(f"{where}: expected numbers of shape {shape}, got {repr(value)[:200]}") from None
     if len(shape) == 1 and a.size == shape[0] and max(a.shape, default=0) == a.size:
         a = a.reshape(shape)  # a vector stored as a row or a column (OpenCV's matrices)
     if a.shape != shape:
