@@ -254,12 +254,26 @@ def board_from_args(args):
 
 
 def _camera_folders(specs: list[str]) -> dict[str, str]:
-    """NAME=FOLDER (or glob); a bare folder is named after itself."""
-    cameras = {}
+    """NAME=FOLDER (or glob, or video); a bare folder is named after itself, a bare video after
+    its stem, and a bare folder of videos (and no images) is one camera per video."""
+    from .image_folders import IMAGE_SUFFIXES, VIDEO_SUFFIXES
+
+    pairs = []
     for spec in specs:
         name, sep, where = spec.partition("=")
-        if not sep:
-            name, where = Path(spec.rstrip("/")).name, spec
+        if sep:
+            pairs.append((name, where))
+            continue
+        path = Path(spec.rstrip("/"))
+        inside = sorted(path.iterdir()) if path.is_dir() else []
+        videos = [p for p in inside if p.suffix.lower() in VIDEO_SUFFIXES]
+        if videos and not any(p.suffix.lower() in IMAGE_SUFFIXES for p in inside):
+            pairs += [(p.stem, str(p)) for p in videos]
+        else:
+            pairs.append((path.stem if path.suffix.lower() in VIDEO_SUFFIXES else path.name,
+                          spec))
+    cameras = {}
+    for name, where in pairs:
         if name in cameras:
             raise ValueError(f"camera {name!r} given twice; name them: NAME=FOLDER")
         cameras[name] = where
@@ -278,7 +292,8 @@ def cmd_calibrate_images(args) -> int:
 
     methods = _methods(args.methods)
     pattern, diameter_given = board_from_args(args)
-    source = ImageFolders.open(_camera_folders(args.cameras), pattern)
+    source = ImageFolders.open(_camera_folders(args.cameras), pattern, args.frame_stride,
+                               args.max_frames)
     measured = []
     if hasattr(pattern, "diameter_mm") and not diameter_given:
         source, note = with_measured_diameter(source)
@@ -410,6 +425,8 @@ def build_parser() -> argparse.ArgumentParser:
     _trial_options(u)
     u.set_defaults(func=cmd_run)
 
+    from .image_folders import MAX_VIDEO_FRAMES
+
     i = sub.add_parser("calibrate-images",
                        help="calibrate your own images (one folder per camera) with every method",
                        description="Detect the board in each camera's images, calibrate every "
@@ -419,8 +436,16 @@ def build_parser() -> argparse.ArgumentParser:
                                    "between methods, coverage, flagged views). Frames pair "
                                    "across cameras by the last number in the file name.")
     i.add_argument("cameras", nargs="+", metavar="NAME=FOLDER",
-                   help="a camera's folder of JPEG/PNG/TIFF images, or a quoted glob such as "
-                        "left='data/left*.jpg'; a bare folder is named after itself")
+                   help="a camera's folder of JPEG/PNG/TIFF images, a quoted glob such as "
+                        "left='data/left*.jpg', or a video (synchronised videos pair by frame "
+                        "index); a bare folder is named after itself, a bare folder of videos "
+                        "is one camera per video")
+    i.add_argument("--frame-stride", dest="frame_stride", type=int, default=1,
+                   help="videos: take every Nth frame (default: %(default)s, raised so that "
+                        "the longest video gives at most --max-frames)")
+    i.add_argument("--max-frames", dest="max_frames", type=int, default=MAX_VIDEO_FRAMES,
+                   help="videos: at most this many frames from the longest (default: "
+                        "%(default)s)")
     i.add_argument("--board", choices=["checkerboard", "charuco", "symmetric_circles",
                                        "asymmetric_circles"], help="the board's kind")
     i.add_argument("--board-file", help="a YAML file with the rig file's pattern section "

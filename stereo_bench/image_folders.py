@@ -10,6 +10,12 @@ Frames are paired across cameras by the number in the file name: the last run of
 stem (``left07.jpg``, ``cam2/0007.png`` and ``right_7.tif`` are all frame 7); a name without a
 digit pairs by its whole stem. A frame one camera lacks is a frame that camera did not see.
 
+Videos. A camera may instead be one video file (MP4, AVI, MOV, MKV, WebM), decoded with OpenCV;
+synchronised videos pair by frame index. Every ``stride``-th frame is taken, the stride raised
+for every camera alike so that the longest video gives at most ``max_frames`` frames (a
+calibration needs tens of distinct views, not every frame of a minute of video). The frames
+taken are held in memory, PNG-compressed, and named ``VIDEO@INDEX`` in the records.
+
 Image size. A camera's image size is the most common size among its images (on a tie, the size
 of its earliest image among the tied), so one odd image, first or not, cannot make the others
 look wrong; the images of another size, and the unreadable ones, are named with their sizes in
@@ -32,7 +38,74 @@ from .patterns import Pattern
 from .rundir import is_safe_name, read_grey
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v")
 _LAST_NUMBER = re.compile(r"(\d+)(?!.*\d)")
+#: Frames taken from the longest video by default (module notes).
+MAX_VIDEO_FRAMES = 100
+
+
+@dataclass(frozen=True)
+class VideoFrame:
+    """One frame taken from a video: its file, its index and its grey pixels as PNG bytes."""
+
+    video: Path
+    index: int
+    png: bytes
+
+    @property
+    def name(self) -> str:
+        return f"{self.video.name}@{self.index}"
+
+    def __str__(self) -> str:
+        return f"{self.video}@{self.index}"
+
+
+def is_video(where: str) -> bool:
+    return Path(where).suffix.lower() in VIDEO_SUFFIXES and Path(where).is_file()
+
+
+def video_length(name: str, path: Path) -> int:
+    """The frame count a video declares; a ValueError naming the camera when OpenCV cannot open
+    it."""
+    import cv2
+
+    capture = cv2.VideoCapture(str(path))
+    try:
+        if not capture.isOpened():
+            raise ValueError(f"camera {name!r}: {path} is not a video OpenCV can decode")
+        return max(int(capture.get(cv2.CAP_PROP_FRAME_COUNT)), 0)
+    finally:
+        capture.release()
+
+
+def video_frames(name: str, path: Path, stride: int) -> list[VideoFrame]:
+    """Every ``stride``-th frame of a video (decoded in order: seeking is not exact in every
+    codec), as grey."""
+    import cv2
+
+    capture, frames, index = cv2.VideoCapture(str(path)), [], 0
+    try:
+        while capture.grab():
+            if index % stride == 0:
+                ok, image = capture.retrieve()
+                if ok:
+                    grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+                    frames.append(VideoFrame(path, index, cv2.imencode(".png", grey)[1].tobytes()))
+            index += 1
+    finally:
+        capture.release()
+    if not frames:
+        raise ValueError(f"camera {name!r}: no frame could be decoded from {path}")
+    return frames
+
+
+def read_item(item) -> np.ndarray | None:
+    """The grey pixels of an image file or a video frame; None when they cannot be read."""
+    if isinstance(item, VideoFrame):
+        import cv2
+
+        return cv2.imdecode(np.frombuffer(item.png, np.uint8), cv2.IMREAD_GRAYSCALE)
+    return read_grey(item)
 
 
 @dataclass(frozen=True)
@@ -76,10 +149,10 @@ def _images_of(name: str, where: str) -> list[Path]:
     return [keys[k] for k in sorted(keys)]
 
 
-def _image_size(path: Path) -> tuple[int, int] | None:
+def _image_size(path) -> tuple[int, int] | None:
     """(width, height) of an image as ``ImageFolders.image`` reads it (grey, so EXIF orientation
     is applied alike), or None when OpenCV cannot read it."""
-    img = read_grey(path)
+    img = read_item(path)
     return None if img is None else (img.shape[1], img.shape[0])
 
 
@@ -130,18 +203,32 @@ class ImageFolders:
     size_warnings: tuple[str, ...] = ()
 
     @classmethod
-    def open(cls, cameras: dict[str, str], pattern: Pattern) -> "ImageFolders":
-        """``cameras``: name -> folder or glob. Raises ValueError or FileNotFoundError naming the
-        camera and the file when a folder is empty, a name is unusable or none of a camera's
-        images can be read; images of another size than most of a camera's are named in
-        ``warnings`` (module notes)."""
+    def open(cls, cameras: dict[str, str], pattern: Pattern, stride: int = 1,
+             max_frames: int = MAX_VIDEO_FRAMES) -> "ImageFolders":
+        """``cameras``: name -> folder, glob or video file. Raises ValueError or
+        FileNotFoundError naming the camera and the file when a folder is empty, a name is
+        unusable, a video cannot be decoded or none of a camera's images can be read; images of
+        another size than most of a camera's are named in ``warnings``. ``stride`` and
+        ``max_frames``: the frames taken from videos (module notes)."""
         if not cameras:
             raise ValueError("cameras: expected at least one camera folder")
-        per_camera = {}
-        for name, where in cameras.items():
+        if stride < 1 or max_frames < 2:
+            raise ValueError(f"--frame-stride {stride}, --max-frames {max_frames}: expected a "
+                             f"stride of at least 1 and at least 2 frames")
+        for name in cameras:
             if not is_safe_name(name):
                 raise ValueError(f"camera name {name!r}: expected letters, digits, '_', '-' or "
                                  f"'.' (it names files of the output)")
+        videos = {n: Path(w) for n, w in cameras.items() if is_video(w)}
+        if videos:
+            longest = max(video_length(n, p) for n, p in videos.items())
+            stride = max(stride, -(-longest // max_frames))
+        per_camera = {}
+        for name, where in cameras.items():
+            if name in videos:
+                per_camera[name] = {(0, f.index): f
+                                    for f in video_frames(name, videos[name], stride)}
+                continue
             per_camera[name] = {frame_key(p): p for p in _images_of(name, where)}
         keys = sorted(set().union(*per_camera.values()))
         files = [[images.get(k) for k in keys] for images in per_camera.values()]
@@ -186,7 +273,7 @@ class ImageFolders:
         cam, path = self.cameras[camera], self.files[camera][frame]
         if path is None:
             raise FileNotFoundError(f"camera {cam.name!r} has no image of {self.frame_name(frame)}")
-        img = read_grey(path)
+        img = read_item(path)
         if img is None:
             raise ValueError(f"{path}: not an image OpenCV can read (or over 64 M pixels)")
         if (img.shape[1], img.shape[0]) != cam.size:
@@ -202,7 +289,9 @@ class ImageFolders:
         for cam, row in zip(self.cameras, self.files):
             h.update(cam.name.encode())
             for path in row:
-                h.update(b"-" if path is None else hashlib.sha256(path.read_bytes()).digest())
+                data = b"-" if path is None else (
+                    path.png if isinstance(path, VideoFrame) else path.read_bytes())
+                h.update(hashlib.sha256(data).digest())
         return h.hexdigest()[:16]
 
     def index(self) -> dict:

@@ -198,3 +198,35 @@ def test_random_board_options_never_give_a_traceback(rendered, tmp_path, capsys)
         assert "Traceback" not in err, (argv, err)
         assert code == 0 or "error" in err, (argv, err)
     assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith("o")) == []
+
+
+def test_synchronised_videos_calibrate_like_their_frames(rendered, tmp_path, capsys):
+    """Each camera's frames as an MP4 video (each frame held for 3 video frames, as a board
+    held still is filmed): calibrate-images takes the videos as they come, pairs them by frame
+    index, takes every 3rd frame to stay within --max-frames, and finds the rig."""
+    _, trial, folders, _ = rendered
+    videos = tmp_path / "videos"
+    videos.mkdir()
+    for cam, folder in folders.items():
+        images = sorted(folder.glob("*.png"))
+        h, w = cv2.imread(str(images[0]), 0).shape
+        writer = cv2.VideoWriter(str(videos / f"{cam}.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 30,
+                                 (w, h))
+        for png in images:
+            for _ in range(3):
+                writer.write(cv2.imread(str(png)))
+        writer.release()
+    out = tmp_path / "out"
+    assert main(["calibrate-images", str(videos), "--board", "checkerboard", "--inner-corners",
+                 "8x11", "--square-mm", "15", "--methods", "opencv", "--max-frames", "10",
+                 "--out", str(out)]) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert [c["name"] for c in res["cameras"]] == ["left", "right"]
+    assert res["frames"] == 10 and res["frame_names"][:2] == ["frame 0", "frame 3"]
+    assert res["detection"]["left"]["found"] == 10
+    frames = json.loads((out / "frames.json").read_text())["frames"]
+    assert frames[1]["files"]["left"].endswith("left.mp4@3")
+    # MPEG-4 at its default quality moves corners by a fraction of a pixel, not the rig.
+    rig = res["rig"]["opencv"]
+    assert abs(rig["baseline_mm"]["right"] - 120.0) < 1.0
+    assert rig["rms_px"] < 0.5
