@@ -87,6 +87,12 @@ def build_parser() -> argparse.ArgumentParser:
                           f"{DEFAULT_RUN}, written by `make demo`)")
     src.add_argument("--rig", metavar="RIG.yaml",
                      help="a rig file: the true cameras only (then only --calib gt)")
+    src.add_argument("--capture", metavar="DIR",
+                     help="your own rig, calibrated by `stereo-bench calibrate-images --out DIR`: "
+                          "its opencv rig (else its first method's) stands for the true cameras, "
+                          "and --calib METHOD or all measures what choosing another method's rig "
+                          "instead would change in the pose. With --calibration FILE alone, the "
+                          "file's cameras stand for the true ones")
     p.add_argument("--motion", default="walk_circle", choices=sorted(MOTIONS),
                    help="procedural body motion (default: %(default)s)")
     p.add_argument("--frames", type=int, default=60, help="frames at 30 fps (default: %(default)s)")
@@ -123,8 +129,46 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _capture_trial(folder) -> tuple[str, str, list[Trial]]:
+    """A calibrate-images output as one trial: the reference rig (opencv's, else the first
+    method's that gave one) as the true cameras, the other methods' rigs as estimates."""
+    from stereo_bench.exchange import _rig_file_cameras
+    from stereo_bench.rundir import CapturePaths, read_json
+
+    paths = CapturePaths(folder)
+    results = read_json(paths.results) if paths.results.is_file() else None
+    if not isinstance(results, dict) or results.get("kind") != "capture":
+        raise FileNotFoundError(f"{folder}: not a folder written by `stereo-bench "
+                                f"calibrate-images`")
+    rigs = {}
+    for m in results.get("methods", []):
+        path = paths.trial.rig(m)
+        if path.is_file():
+            rigs[m] = _rig_file_cameras(path)
+    usable = [m for m, r in rigs.items() if not isinstance(r, str)]
+    if not usable:
+        raise ValueError(f"{folder}: no method gave a rig of two or more cameras ("
+                         + "; ".join(f"{m}: {r}" for m, r in rigs.items()) + ")")
+    reference = "opencv" if "opencv" in usable else usable[0]
+    truth = rigs.pop(reference)
+    return (Path(folder).name, f"capture (reference: {reference}'s rig)",
+            [Trial(0, truth, rigs)])
+
+
+def _source(args) -> str:
+    return args.run or args.rig or args.capture or args.calibration
+
+
 def _inputs(args) -> tuple[str, str, list[Trial]]:
-    """(rig name, environment, run trials) from --run or --rig."""
+    """(rig name, environment, run trials) from --run, --rig, --capture or --calibration
+    alone (its cameras as the true ones)."""
+    if args.capture:
+        return _capture_trial(args.capture)
+    if not args.run and not args.rig:
+        from stereo_bench import io
+
+        cams = io.load(args.calibration, args.calibration_format)
+        return Path(args.calibration).stem, "calibration file", [Trial(0, cams, {})]
     if args.run:
         name, env = run_description(args.run)
         return name, env, load_run(args.run)
@@ -137,7 +181,7 @@ def _methods(args, trials: list[Trial]) -> list[str]:
         raise ValueError("--calib: expected a method, gt or all (or --calibration FILE)")
     if args.calib in ("gt", None):
         return ["gt"]
-    if not args.run:
+    if not args.run and not args.capture:
         raise ValueError(f"--calib {args.calib} needs the method's calibrated rig: run "
                          f"`stereo-bench {args.rig} --out RUN` first and pass --run RUN "
                          f"(--rig alone gives the true cameras, i.e. --calib gt)")
@@ -147,8 +191,10 @@ def _methods(args, trials: list[Trial]) -> list[str]:
         return ["gt"] + sorted(found, key=lambda m: (rank.get(m, len(rank)), m))
     for t in trials:
         if args.calib not in t.rigs:
+            where = (Path(args.capture) / "rig" / f"{args.calib}.json" if args.capture else
+                     RunPaths(Path(args.run)).trial(t.seed).rig(args.calib))
             raise FileNotFoundError(
-                f"{RunPaths(Path(args.run)).trial(t.seed).rig(args.calib)}: "
+                f"{where}: "
                 f"no rig of method {args.calib!r} in this run (methods found: "
                 f"{sorted(t.rigs) or 'none'})")
     return ["gt", args.calib]
@@ -307,10 +353,12 @@ def evaluate(args) -> tuple[dict, dict]:
         require()  # before anything is placed or rendered
     rig, env, run_trials = _inputs(args)
     if len(run_trials[0].truth) < 2:
-        raise ValueError(f"{args.run or args.rig}: {len(run_trials[0].truth)} camera; "
+        raise ValueError(f"{_source(args)}: {len(run_trials[0].truth)} camera; "
                          f"triangulating a pose needs at least two")
     methods = _methods(args, run_trials)
-    imported = _imported(args, run_trials[0].truth)
+    # --calibration alone is the true cameras, not an estimate of them.
+    as_truth = not (args.run or args.rig or args.capture)
+    imported = {} if as_truth else _imported(args, run_trials[0].truth)
     run_methods, methods = methods, methods + list(imported)
     detector = DetectorModel(*(d if v is None else v for v, d in zip(noise, (NOISE_PX, 0.0, 0.0))),
                              occlusion=not args.no_occlusion)
@@ -335,7 +383,7 @@ def evaluate(args) -> tuple[dict, dict]:
                     scene = make_scene(truth, args.motion, args.frames, model=model,
                                        distance_mm=args.distance_mm)
                 except ValueError as e:  # a rig with no place for a body: name its file
-                    raise ValueError(f"{args.run or args.rig}: {e}") from None
+                    raise ValueError(f"{_source(args)}: {e}") from None
             placement += [str(w.message) for w in caught if str(w.message) not in placement]
             occluded = scene_occlusion(truth, scene) if detector.occlusion else None
             rendered = (_rendered_keypoints(truth, scene, model, output_dir(args, rig), args)
@@ -375,7 +423,7 @@ def evaluate(args) -> tuple[dict, dict]:
         "motion": args.motion, "frames": args.frames, "trials": n_trials,
         "distance_mm": first_scene.distance_mm, "surrounded": first_scene.surrounded,
         "robust": args.robust, "fit_smpl": args.fit_smpl,
-        "model_path": args.model_path, "source": args.run or args.rig, "seed": args.seed,
+        "model_path": args.model_path, "source": _source(args), "seed": args.seed,
         "keypoints": ("BlazePose (MediaPipe 0.10.21, full) on Blender renders, "
                       f"{args.render_samples} samples" if args.rendered else
                       f"OpenPose files from {args.keypoints}" if args.keypoints else
@@ -393,7 +441,11 @@ def evaluate(args) -> tuple[dict, dict]:
 
 
 def output_dir(args, rig: str) -> Path:
-    return Path(args.out or Path("out") / (rig if is_safe_name(rig) else "run") / "pose_eval")
+    if args.out:
+        return Path(args.out)
+    if args.capture:  # beside the capture's own results
+        return Path(args.capture) / "pose_eval"
+    return Path("out") / (rig if is_safe_name(rig) else "run") / "pose_eval"
 
 
 def _rendered_keypoints(cameras, scene, model, out: Path, args):
@@ -434,7 +486,7 @@ def write_outputs(results: dict, examples: dict, out: Path) -> None:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    if not args.run and not args.rig:
+    if not (args.run or args.rig or args.capture or args.calibration):
         args.run = DEFAULT_RUN
     try:
         results, examples = evaluate(args)
