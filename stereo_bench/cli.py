@@ -322,6 +322,8 @@ def cmd_calibrate_images(args) -> int:
                               sort_keys=False), methods=methods)
     console.print(text, markup=False, soft_wrap=True, highlight=False)
     _warn(results["warnings"] + results["notes"])
+    for line in results.get("recapture", []):
+        say("recapture", "cyan", line)
     calibrated = {cam for cams in results["calibration"].values()
                   for cam, e in cams.items() if "error" not in e}
     if not calibrated:

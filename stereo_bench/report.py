@@ -433,6 +433,8 @@ def capture_markdown(results: dict, title: str) -> str:
                   "cv2.calibrateMultiview on the same detections with the same intrinsics "
                   "fixed (full views only).", ""]
         lines += _capture_rig_rows(results) + [""]
+    if results.get("recapture"):
+        lines += ["## What to recapture", ""] + [f"- {n}" for n in results["recapture"]] + [""]
     notes = results["warnings"] + results["notes"]
     if notes:
         lines += ["## Notes", ""] + [f"- {n}" for n in notes] + [""]

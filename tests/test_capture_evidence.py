@@ -156,10 +156,12 @@ def test_wrong_inner_corners_on_real_images(opencv_pair, tmp_path, capsys):
                  "5x4", "--square-mm", "25", "--methods", "opencv,tsai", "--out", str(out)])
     err = capsys.readouterr().err
     assert code == 1 and "Traceback" not in err
-    assert "camera 'right' not calibrated: 1 usable view" in err
-    assert "found in only 1 of 13 images: is the board described right? --inner-corners 5x4" \
+    # The sub-grid is also found in one more image of each camera in the other polarity (the
+    # detector's try for inverted boards): still too few views, and still said why.
+    assert "camera 'right' not calibrated: its 2 views do not determine the focal length" in err
+    assert "found in only 2 of 13 images: is the board described right? --inner-corners 5x4" \
         in err
-    assert "camera 'left': no usable view" in err
+    assert "camera 'left' not calibrated: 1 usable view" in err
 
 
 def test_image_size_is_the_most_common_one(images, tmp_path, capsys):
@@ -243,3 +245,24 @@ def test_real_pair_unchanged(opencv_pair, tmp_path):
         got = json.loads((tmp_path / "calibrations" / m / f"{cam}.json").read_text())["fx"]
         assert got == pytest.approx(fx, rel=1e-9), (m, cam)
     assert not any("0%" in w or "not calibrated" in w for w in res["warnings"])
+
+
+def test_guidance_names_the_empty_parts_of_the_image_and_a_baseline_apart():
+    from stereo_bench.capture import baseline_outliers, empty_regions, recapture
+
+    counts = np.zeros((8, 10), int)
+    counts[3:6, 4:7] = 5  # the board only ever in the middle of the image
+    assert empty_regions(counts) == ["top-left", "top", "top-right", "left", "right",
+                                     "bottom-left", "bottom", "bottom-right"]
+    counts[:] = 1
+    assert empty_regions(counts) == []
+    counts[5:, 7:] = 0
+    assert empty_regions(counts) == ["bottom-right"]
+    results = {"cameras": [{"name": "a"}], "calibration": {"opencv": {"a": {"diagnostics": {
+        "coverage": {"counts": counts.tolist(), "cell_fraction": 0.9}}}}}}
+    (line,) = recapture(results)
+    assert line.startswith("camera a: no board feature reached the bottom-right of the image")
+    rig = {m: {"baseline_mm": {"a": 0.0, "b": b}}
+           for m, b in (("zhang", 100.0), ("opencv", 100.2), ("tsai", 106.0))}
+    (flag,) = baseline_outliers(rig)
+    assert flag.startswith("tsai's rig puts camera b 106.0 mm from the reference, +5.8 %")

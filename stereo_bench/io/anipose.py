@@ -80,7 +80,7 @@ def _camera(table, key: str, where: str, mm_per_unit: float) -> Camera:
                          f"does not hold")
     try:
         K = common.camera_matrix(table["matrix"], f"{at}: matrix")
-        dist = np.asarray(table["distortions"], dtype=np.float64).reshape(-1)
+        dist = common.numbers(table["distortions"], None, f"{at}: distortions")
         w, h = common.numbers(table["size"], (2,), f"{at}: size [w, h]")
         rvec = common.numbers(table["rotation"], (3,), f"{at}: rotation")
         tvec = common.numbers(table["translation"], (3,), f"{at}: translation")

@@ -148,12 +148,15 @@ def camera_matrix(value, where: str) -> np.ndarray:
     return K
 
 
-def numbers(value, shape: tuple, where: str) -> np.ndarray:
-    """Finite float64 numbers of ``shape`` read from a file, or a ValueError naming ``where``."""
+def numbers(value, shape: tuple | None, where: str) -> np.ndarray:
+    """Finite float64 numbers of ``shape`` read from a file, or a ValueError naming ``where``;
+    ``shape`` None: a vector of any length (a list of coefficients)."""
     try:
         a = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError, OverflowError):  # OverflowError: an integer of 400 digits
         raise ValueError(f"{where}: expected numbers of shape {shape}, got {repr(value)[:200]}") from None
+    if shape is None:
+        shape = (a.size,) if a.ndim <= 1 or max(a.shape) == a.size else a.shape
     if len(shape) == 1 and a.size == shape[0] and max(a.shape, default=0) == a.size:
         a = a.reshape(shape)  # a vector stored as a row or a column (OpenCV's matrices)
     if a.shape != shape:
