@@ -312,7 +312,7 @@ def _capture_rig(source: ImageFolders, trial, method: str, calibration: Calibrat
     entry["left_out"] = missing
     if doubts := rig_doubts(entry):
         return {"method": method, "left_out": missing, "doubted": entry,
-                "error": "not reported, its own figures contradict it: " + "; ".join(doubts)}
+                "error": "its own figures contradict it: " + "; ".join(doubts)}
     return entry
 
 
@@ -437,7 +437,8 @@ def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration
     results = {
         "kind": "capture",
         "pattern": {"kind": source.pattern.kind, **{
-            k: v for k, v in vars(source.pattern).items() if k != "margin_mm"}},
+            k: v for k, v in vars(source.pattern).items()
+            if k != "margin_mm" and not (k == "inverted" and not v)}},
         "cameras": [{"name": c.name, "width": c.width, "height": c.height}
                     for c in source.cameras],
         "frames": source.frames,
