@@ -182,10 +182,12 @@ def test_an_output_changed_after_its_stage_is_redone_and_named(tmp_path, capsys,
 
 
 def _without_times(d):
-    """A report without its wall times (the keys ending in _s), which a redone stage renews."""
+    """A report without its wall times (the keys ending in _s, and the sections of them), which
+    a redone stage renews; a marker's "content" is the digest of its keys, wall times included."""
     if isinstance(d, dict):
-        return {k: _without_times(v) for k, v in d.items() if not k.endswith("_s")}
-    return d
+        return {k: _without_times(v) for k, v in d.items()
+                if not (k.endswith("_s") or k in ("timing", "time s", "content"))}
+    return [_without_times(v) for v in d] if isinstance(d, list) else d
 
 
 def test_a_resized_image_is_refused_naming_it(tmp_path, capsys):
@@ -218,16 +220,9 @@ def test_identical_runs_differ_only_in_wall_times(tmp_path):
                            "trials/seed_7/detections/done.json", "trials/seed_7/rig/opencv.json",
                            "trials/seed_7/rig/zhang.json"}, differ
 
-    def without_times(x):
-        # A marker's "content" is the digest of its own keys, wall times included.
-        if isinstance(x, dict):
-            return {k: without_times(v) for k, v in x.items()
-                    if not (k.endswith("_s") or k in ("timing", "time s", "content"))}
-        return [without_times(v) for v in x] if isinstance(x, list) else x
-
     for name in differ:
         if name.endswith(".json"):
-            assert without_times(json.loads((a / name).read_text())) == without_times(
+            assert _without_times(json.loads((a / name).read_text())) == _without_times(
                 json.loads((b / name).read_text())), name
 
 
