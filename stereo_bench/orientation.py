@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .camera import matrix_to_rodrigues, rodrigues_to_matrix
+from .camera import geodesic_distance, matrix_to_rodrigues, rodrigues_to_matrix
 
 #: A view whose relative rotation, under its best numbering, differs from its cameras' consensus
 #: by more than this is left out. The turns a layout allows differ by 90 degrees or more, and a
@@ -52,11 +52,6 @@ def _turn(deg: float, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     a = np.radians(deg)
     R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
     return R, centre - R @ centre
-
-
-def _angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    c = (np.trace(Ra @ Rb.T) - 1) / 2
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
 def agree(object_points, image_points, rvecs, tvecs, found, names, identified: bool = False):
@@ -99,13 +94,12 @@ def agree(object_points, image_points, rvecs, tvecs, found, names, identified: b
             Q = np.stack([[R[j, f] @ _turn(deg, centre)[0].T @ R[i, f].T for deg, _ in options]
                           for f in frames])
             flat = Q.reshape(-1, 3, 3)
-            cos = (np.einsum("aij,bij->ab", flat, flat) - 1) / 2
-            apart = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).reshape(len(flat), len(frames),
-                                                                          len(options))
+            apart = np.degrees(geodesic_distance(flat[:, None], flat[None])).reshape(
+                len(flat), len(frames), len(options))
             consensus = flat[int(((apart.min(axis=2)) < AGREE_DEG).sum(axis=1).argmax())]
             for k, f in enumerate(frames):
-                best, deg = min((_angle_deg(consensus, Q[k, o]), d)
-                                for o, (d, _) in enumerate(options))
+                off = np.degrees(geodesic_distance(consensus, Q[k]))
+                best, deg = min((float(off[o]), d) for o, (d, _) in enumerate(options))
                 resolved[f] = True
                 if best > AGREE_DEG:
                     pts[j, f], rv[j, f], tv[j, f] = np.nan, np.nan, np.nan
