@@ -69,6 +69,20 @@ def guarded(fn):
         signal.signal(signal.SIGALRM, old)
 
 
+def run_checked(argv, work: Path, allowed: list[Path], capsys, case: str):
+    """Run the command of one case: (exit code, what it printed, None), or (None, "", what went
+    wrong) when it raised, hung or wrote outside ``allowed``; ``case`` names it in that."""
+    before = _files(work)
+    rc, wrong = guarded(lambda: main(argv))
+    captured = capsys.readouterr()
+    said = (captured.out + captured.err).replace("\n", " ")
+    if wrong:
+        return None, "", f"{wrong} ({case})"
+    if outside := _written_outside(work, before, allowed):
+        return None, "", f"write outside {allowed[0].name}: {outside[:2]}"
+    return rc, said, None
+
+
 def _files(root: Path) -> dict[Path, int]:
     return {p: p.stat().st_mtime_ns for p in root.rglob("*") if p.is_file() and not p.is_symlink()}
 
@@ -180,13 +194,9 @@ def exchange_case(i: int, m: dict, work: Path, capsys) -> str:
     given = rng.choice([fmt, None])
     argv = ["score", str(m["dataset"]), str(calib), "--out", str(out)] + \
         (["--format", given] if given else [])
-    before = _files(work)
-    rc, wrong = guarded(lambda: main(argv))
-    err = capsys.readouterr().err.replace("\n", " ")
-    if wrong:
-        return f"{wrong} ({fmt} {target.name})"
-    if outside := _written_outside(work, before, [out]):
-        return f"write outside --out: {outside[:2]}"
+    rc, err, problem = run_checked(argv, work, [out], capsys, f"{fmt} {target.name}")
+    if problem:
+        return problem
     if rc == 2:
         return "refused (exit 2)" if str(calib) in err else f"refusal not naming the file: {err}"
     if rc == 0:
@@ -249,15 +259,11 @@ def rundir_case(i: int, m: dict, work: Path, capsys) -> str:
     else:
         argv = ["export", str(copy_dir), "--format", rng.choice(sorted(FORMATS)),
                 "--method", "opencv-radtan", "--out", str(work / "exported")]
-    before = _files(work)
-    rc, wrong = guarded(lambda: main(argv))
-    captured = capsys.readouterr()
-    said = (captured.out + captured.err).replace("\n", " ")
     where = target.relative_to(copy_dir)
-    if wrong:
-        return f"{wrong} ({command} after {where})"
-    if outside := _written_outside(work, before, [copy_dir, work / "exported"]):
-        return f"write outside the run: {outside[:2]}"
+    rc, said, problem = run_checked(argv, work, [copy_dir, work / "exported"], capsys,
+                                    f"{command} after {where}")
+    if problem:
+        return problem
     if rc == 2:
         return "refused (exit 2)"
     if rc == 0 and command == "run":
@@ -380,13 +386,9 @@ def capture_case(i: int, m: dict, work: Path, capsys) -> str:
     out = work / "out"
     argv = ["calibrate-images", *cameras, *board, "--methods", "opencv", "--folds", "2",
             "--out", str(out)]
-    before = _files(work)
-    rc, wrong = guarded(lambda: main(argv))
-    err = capsys.readouterr().err.replace("\n", " ")
-    if wrong:
-        return f"{wrong} (argv {argv[1:]})"
-    if outside_writes := _written_outside(work, before, [out]):
-        return f"write outside --out: {outside_writes[:2]}"
+    rc, _, problem = run_checked(argv, work, [out], capsys, f"argv {argv[1:]}")
+    if problem:
+        return problem
     if rc in (0, 1) and (out / "results.json").is_file():
         results = json.loads((out / "results.json").read_text())
         done = {cam for cams in results["calibration"].values() for cam, e in cams.items()
