@@ -214,7 +214,9 @@ def board_from_args(args):
     """The board of ``calibrate-images`` from its options (or --board-file), validated by the
     rig file's own schema (config.PatternConfig), so both name the same fields; and whether
     the user gave a circle grid's disc diameter."""
-    from .config import PatternConfig, load_yaml
+    from pydantic import ValidationError
+
+    from .config import PatternConfig, describe, load_yaml
 
     if args.board_file:
         data = load_yaml(args.board_file, "board file")
@@ -248,7 +250,9 @@ def board_from_args(args):
         source = "the --board options"
     try:
         board = PatternConfig.model_validate(data).build()
-    except Exception as e:  # pydantic's ValidationError or the board's own ValueError
+    except ValidationError as e:  # in words, each field with what was expected
+        raise ValueError(describe(e, source, "board")) from None
+    except Exception as e:  # the board's own ValueError
         raise ValueError(f"{source}: {e}") from None
     return board, isinstance(data, dict) and "diameter_mm" in data
 
