@@ -196,6 +196,7 @@ _BOARD_OPTIONS = {
     "square_mm": ("checkerboard", "charuco"),
     "marker_mm": ("charuco",),
     "dictionary": ("charuco",),
+    "legacy": ("charuco",),
     "spacing_mm": ("symmetric_circles", "asymmetric_circles"),
     "diameter_mm": ("symmetric_circles", "asymmetric_circles"),
 }
@@ -297,7 +298,7 @@ def cmd_calibrate_images(args) -> int:
     methods = _methods(args.methods)
     pattern, diameter_given = board_from_args(args)
     source = ImageFolders.open(_camera_folders(args.cameras), pattern, args.frame_stride,
-                               args.max_frames)
+                               args.max_frames, args.timestamps)
     measured = []
     if hasattr(pattern, "diameter_mm") and not diameter_given:
         source, note = with_measured_diameter(source)
@@ -452,6 +453,11 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--max-frames", dest="max_frames", type=int, default=MAX_VIDEO_FRAMES,
                    help="videos: at most this many frames from the longest (default: "
                         "%(default)s)")
+    i.add_argument("--timestamps", metavar="CSV",
+                   help="videos not triggered together: a CSV with a camera column (camera, "
+                        "cam_id, cam or port: a name, or the number it ends with) and a time "
+                        "column (time, frame_time or timestamp, s), one row per frame; frames "
+                        "pair by nearest time")
     i.add_argument("--board", choices=["checkerboard", "charuco", "symmetric_circles",
                                        "asymmetric_circles"], help="the board's kind")
     i.add_argument("--board-file", help="a YAML file with the rig file's pattern section "
@@ -465,6 +471,9 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--square-mm", dest="square_mm", type=float, help="square side, mm")
     i.add_argument("--marker-mm", dest="marker_mm", type=float, help="charuco: marker side, mm")
     i.add_argument("--dictionary", help="charuco: the cv2.aruco dictionary, e.g. DICT_5X5_100")
+    i.add_argument("--legacy", action="store_const", const=True,
+                   help="charuco: a board made by OpenCV before 4.6 (with an even number of "
+                        "rows its top-left square is white)")
     i.add_argument("--spacing-mm", dest="spacing_mm", type=float,
                    help="circle grids: centre spacing, mm (asymmetric: OpenCV's squareSize, "
                         "the row pitch)")

@@ -133,7 +133,18 @@ def detect(image: np.ndarray, pattern: Pattern, method: str | None = None) -> De
     if found.found:
         return found
     other = _detect_in(255 - first, pattern, method)
-    return other if other.found else found
+    if other.found or pattern.kind != "charuco":
+        return other if other.found else found
+    # A one-sided ChArUco print seen from behind (through thin paper or acrylic) is its mirror
+    # image, whose markers read as no id; mirrored back, each corner keeps its id, so it is the
+    # same board point. A chessboard or circle grid mirrored is found in the image as it is.
+    for polarity in (first, 255 - first):
+        back = _detect_in(np.ascontiguousarray(polarity[:, ::-1]), pattern, method)
+        if back.found:
+            points = back.points.copy()
+            points[:, 0] = gray.shape[1] - 1 - points[:, 0]  # pixel centres: x -> W - 1 - x
+            return Detection(points, back.ids, True)
+    return found
 
 
 def _detect_in(gray, pattern: Pattern, method: str) -> Detection:

@@ -10,11 +10,14 @@ Frames are paired across cameras by the number in the file name: the last run of
 stem (``left07.jpg``, ``cam2/0007.png`` and ``right_7.tif`` are all frame 7); a name without a
 digit pairs by its whole stem. A frame one camera lacks is a frame that camera did not see.
 
-Videos. A camera may instead be one video file (MP4, AVI, MOV, MKV, WebM), decoded with OpenCV;
-synchronised videos pair by frame index. Every ``stride``-th frame is taken, the stride raised
-for every camera alike so that the longest video gives at most ``max_frames`` frames (a
-calibration needs tens of distinct views, not every frame of a minute of video). The frames
-taken are held in memory, PNG-compressed, and named ``VIDEO@INDEX`` in the records.
+Videos. A camera may instead be one video file (MP4, AVI, MOV, MKV, WebM), decoded with OpenCV.
+Synchronised videos pair by frame index; videos whose frames were not triggered together pair by
+a timestamps file (``read_timestamps``): each moment of the camera with the most frames takes
+every other camera's frame nearest in time, within half that camera's median frame interval
+(``paired_by_time``). Every ``stride``-th moment is taken, the stride raised so that at most
+``max_frames`` moments are (a calibration needs tens of distinct views, not every frame of a
+minute of video); only the frames taken are decoded. They are held in memory, PNG-compressed,
+and named ``VIDEO@INDEX`` in the records, which also hold each moment's time spread.
 
 Image size. A camera's image size is the most common size among its images (on a tie, the size
 of its earliest image among the tied), so one odd image, first or not, cannot make the others
@@ -28,6 +31,7 @@ import glob
 import hashlib
 import re
 from collections import Counter
+import dataclasses
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -78,15 +82,96 @@ def video_length(name: str, path: Path) -> int:
         capture.release()
 
 
-def video_frames(name: str, path: Path, stride: int) -> list[VideoFrame]:
-    """Every ``stride``-th frame of a video (decoded in order: seeking is not exact in every
-    codec), as grey."""
+#: Column names a timestamps file may give its camera and its time (first match wins).
+_CAMERA_COLUMNS = ("camera", "cam_id", "cam", "port")
+_TIME_COLUMNS = ("time", "frame_time", "timestamp")
+
+
+def _timestamp_camera(value: str, names: list[str]) -> str | None:
+    """The camera a timestamps row names: by its name, or by the number its name ends with
+    (``0`` is ``cam_0``)."""
+    if value in names:
+        return value
+    numbered = [n for n in names if (m := _LAST_NUMBER.search(n)) and value.isdigit()
+                and int(m.group(1)) == int(value)]
+    return numbered[0] if len(numbered) == 1 else None
+
+
+def read_timestamps(path, lengths: dict[str, int]) -> dict[str, np.ndarray]:
+    """Per camera, the time of each frame of its video, from a CSV file with a header naming a
+    camera column (one of ``_CAMERA_COLUMNS``) and a time column (``_TIME_COLUMNS``, seconds);
+    a camera's rows, in time order, are its video's frames in order, so their count must be the
+    video's frame count (``lengths``). ValueError naming the file and what is wrong."""
+    import csv
+    import io
+
+    from .rundir import read_text
+
+    rows = list(csv.DictReader(io.StringIO(read_text(path, "timestamps file"))))
+    header = list(rows[0]) if rows else []
+    cam_col = next((c for c in _CAMERA_COLUMNS if c in header), None)
+    time_col = next((c for c in _TIME_COLUMNS if c in header), None)
+    if cam_col is None or time_col is None:
+        raise ValueError(f"timestamps file {path}: expected a header with a camera column "
+                         f"({', '.join(_CAMERA_COLUMNS)}) and a time column "
+                         f"({', '.join(_TIME_COLUMNS)}) and a row per frame; found columns "
+                         f"{header or 'none'}")
+    times: dict[str, list[float]] = {n: [] for n in lengths}
+    for line, row in enumerate(rows, 2):
+        cam = _timestamp_camera(str(row[cam_col]).strip(), list(lengths))
+        if cam is None:
+            continue  # a camera of the session that is not calibrated now
+        try:
+            t = float(row[time_col])
+        except (TypeError, ValueError):
+            t = float("nan")
+        if not np.isfinite(t):
+            raise ValueError(f"timestamps file {path}, line {line}: {time_col} "
+                             f"{row[time_col]!r} is not a time in seconds")
+        times[cam].append(t)
+    for name, n in lengths.items():
+        if len(times[name]) != n:
+            raise ValueError(f"timestamps file {path}: {len(times[name])} rows for camera "
+                             f"{name!r}, whose video has {n} frames; expected one row per frame")
+    return {n: np.sort(np.array(t)) for n, t in times.items()}
+
+
+def paired_by_time(times: dict[str, np.ndarray]) -> tuple[list[dict[str, int]], list[float]]:
+    """The moments of a capture whose cameras were not triggered together (module notes): per
+    moment, each camera's frame index (a camera whose nearest frame is too far is absent), and
+    the moment's spread of times, s."""
+    names = list(times)
+    ref = max(names, key=lambda n: len(times[n]))  # first of the longest on a tie
+    moments = [{ref: i} for i in range(len(times[ref]))]
+    for name in names:
+        if name == ref or len(times[name]) == 0:
+            continue
+        t, t_ref = times[name], times[ref]
+        tolerance = 0.5 * float(np.median(np.diff(t))) if len(t) > 1 else np.inf
+        after = np.searchsorted(t, t_ref)
+        lo, hi = np.clip(after - 1, 0, len(t) - 1), np.clip(after, 0, len(t) - 1)
+        nearest = np.where(np.abs(t[lo] - t_ref) <= np.abs(t[hi] - t_ref), lo, hi)
+        taken: dict[int, int] = {}  # a frame serves the reference moment nearest to it only
+        for i, j in enumerate(nearest.tolist()):
+            gap = abs(t[j] - t_ref[i])
+            if gap <= tolerance and (j not in taken or gap < abs(t[j] - t_ref[taken[j]])):
+                taken[j] = i
+        for j, i in taken.items():
+            moments[i][name] = j
+    spread = [float(np.ptp([times[n][j] for n, j in m.items()])) for m in moments]
+    return moments, spread
+
+
+def video_frames(name: str, path: Path, wanted) -> list[VideoFrame]:
+    """The frames of a video whose indices are in ``wanted`` (a set, or a range), decoded in
+    order (seeking is not exact in every codec), as grey."""
     import cv2
 
     capture, frames, index = cv2.VideoCapture(str(path)), [], 0
+    last = max(wanted, default=-1)
     try:
-        while capture.grab():
-            if index % stride == 0:
+        while index <= last and capture.grab():
+            if index in wanted:
                 ok, image = capture.retrieve()
                 if ok:
                     grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
@@ -201,15 +286,18 @@ class ImageFolders:
     pattern: Pattern
     #: Per camera with odd or unreadable images, the warning naming them (camera_size).
     size_warnings: tuple[str, ...] = ()
+    #: Videos paired by a timestamps file: per frame key, the spread of its cameras' times, s.
+    time_spread: dict = dataclasses.field(default_factory=dict)
 
     @classmethod
     def open(cls, cameras: dict[str, str], pattern: Pattern, stride: int = 1,
-             max_frames: int = MAX_VIDEO_FRAMES) -> "ImageFolders":
+             max_frames: int = MAX_VIDEO_FRAMES, timestamps=None) -> "ImageFolders":
         """``cameras``: name -> folder, glob or video file. Raises ValueError or
         FileNotFoundError naming the camera and the file when a folder is empty, a name is
         unusable, a video cannot be decoded or none of a camera's images can be read; images of
-        another size than most of a camera's are named in ``warnings``. ``stride`` and
-        ``max_frames``: the frames taken from videos (module notes)."""
+        another size than most of a camera's are named in ``warnings``. ``stride``,
+        ``max_frames`` and ``timestamps`` (a file, for videos only): the frames taken from
+        videos and their pairing (module notes)."""
         if not cameras:
             raise ValueError("cameras: expected at least one camera folder")
         if stride < 1 or max_frames < 2:
@@ -220,14 +308,24 @@ class ImageFolders:
                 raise ValueError(f"camera name {name!r}: expected letters, digits, '_', '-' or "
                                  f"'.' (it names files of the output)")
         videos = {n: Path(w) for n, w in cameras.items() if is_video(w)}
-        if videos:
-            longest = max(video_length(n, p) for n, p in videos.items())
-            stride = max(stride, -(-longest // max_frames))
+        lengths = {n: video_length(n, p) for n, p in videos.items()}
+        if timestamps is not None and len(videos) < len(cameras):
+            raise ValueError(f"--timestamps {timestamps}: pairs videos; camera(s) "
+                             f"{', '.join(repr(n) for n in cameras if n not in videos)} are "
+                             f"images, which pair by the number in their names")
+        if timestamps is not None:
+            moments, spread = paired_by_time(read_timestamps(timestamps, lengths))
+        else:
+            moments = [{n: i for n in videos if i < lengths[n]}
+                       for i in range(max(lengths.values(), default=0))]
+            spread = [0.0] * len(moments)
+        taken = range(0, len(moments), max(stride, -(-len(moments) // max_frames)))
         per_camera = {}
         for name, where in cameras.items():
             if name in videos:
-                per_camera[name] = {(0, f.index): f
-                                    for f in video_frames(name, videos[name], stride)}
+                frame_of = {moments[i][name]: (0, i) for i in taken if name in moments[i]}
+                per_camera[name] = {frame_of[f.index]: f
+                                    for f in video_frames(name, videos[name], frame_of)}
                 continue
             per_camera[name] = {frame_key(p): p for p in _images_of(name, where)}
         keys = sorted(set().union(*per_camera.values()))
@@ -237,7 +335,8 @@ class ImageFolders:
             size, warning = camera_size(name, [p for p in row if p is not None])
             cams.append(ImageCamera(name, *size))
             warnings += [warning] if warning else []
-        return cls(cams, files, keys, pattern, tuple(warnings))
+        spreads = {(0, i): spread[i] for i in taken} if timestamps is not None else {}
+        return cls(cams, files, keys, pattern, tuple(warnings), spreads)
 
     @property
     def frames(self) -> int:
@@ -299,5 +398,7 @@ class ImageFolders:
         return {"cameras": [c.name for c in self.cameras],
                 "frames": [{"frame": self.frame_name(f),
                             "files": {c.name: None if row[f] is None else str(row[f])
-                                      for c, row in zip(self.cameras, self.files)}}
+                                      for c, row in zip(self.cameras, self.files)},
+                            **({"time_spread_s": self.time_spread[self.keys[f]]}
+                               if self.keys[f] in self.time_spread else {})}
                            for f in range(self.frames)]}

@@ -366,7 +366,9 @@ class Charuco(Pattern):
     cameras on opposite sides of a studio then see the same corners at the same time. The board
     frame stays the front's; ``back_to_front`` maps the back board's corner indices to it.
     ``marker_id_offset``: the id of the first marker (the back of a two-sided board uses the
-    ids after the front's).
+    ids after the front's). ``legacy``: the layout of boards made by OpenCV before 4.6
+    (``setLegacyPattern``): with an even number of rows the top-left square is white, so the
+    markers sit in the other squares; with an odd number both layouts are the same board.
     """
 
     kind: ClassVar[str] = "charuco"
@@ -378,6 +380,7 @@ class Charuco(Pattern):
     marker_mm: float = 11.0
     dictionary: str = "DICT_7X7_250"
     two_sided: bool = False
+    legacy: bool = False
     # ArUco's dictionaries hold at most 1000 markers.
     marker_id_offset: int = dataclasses.field(default=0, metadata={"min": 0, "max": 999})
 
@@ -436,7 +439,7 @@ class Charuco(Pattern):
             (self.squares_x, self.squares_y), self.square_mm, self.marker_mm,
             self.aruco_dictionary(), self.marker_ids()
         )
-        board.setLegacyPattern(False)
+        board.setLegacyPattern(self.legacy)
         return board
 
     @property
@@ -460,7 +463,8 @@ class Charuco(Pattern):
             _add_cells(black, cells, x_mm * px_per_mm - origin_px[0],
                        y_mm * px_per_mm - origin_px[1], cell_px)
 
-        parity = np.add.outer(np.arange(self.squares_y), np.arange(self.squares_x)) % 2 == 0
+        parity = np.add.outer(np.arange(self.squares_y), np.arange(self.squares_x)) % 2 == (
+            1 if self.legacy and self.squares_y % 2 == 0 else 0)  # True: a black square
         cells_at(parity, 0.0, 0.0, self.squares_x * self.square_mm, self.square_mm * px_per_mm)
         # Markers: 1-bit black border plus the dictionary bits, drawn cell by cell.
         dictionary = self.aruco_dictionary()

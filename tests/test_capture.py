@@ -13,7 +13,7 @@ import yaml
 from stereo_bench.capture import calibrate_capture
 from stereo_bench.cli import main
 from stereo_bench.config import ConfigError, parse_rig
-from stereo_bench.image_folders import ImageFolders, frame_key
+from stereo_bench.image_folders import ImageFolders, frame_key, paired_by_time, read_timestamps
 from stereo_bench.patterns import Checkerboard
 from stereo_bench.pipeline import run
 from stereo_bench.rundir import RunPaths
@@ -230,6 +230,70 @@ def test_synchronised_videos_calibrate_like_their_frames(rendered, tmp_path, cap
     rig = res["rig"]["opencv"]
     assert abs(rig["baseline_mm"]["right"] - 120.0) < 1.0
     assert rig["rms_px"] < 0.5
+
+
+def test_videos_not_triggered_together_pair_by_their_timestamps(rendered, tmp_path):
+    """The right camera started two video frames before the left and its clock runs 4 ms off:
+    paired by frame index, a moment mixes two board poses (a rig far off, or none); paired by
+    the timestamps file, every moment is one pose and the rig is the rendered one."""
+    _, trial, folders, _ = rendered
+    videos = tmp_path / "videos"
+    videos.mkdir()
+    rows = ["sync_index,cam_id,frame_time"]
+    for cam, lead in (("left", 0), ("right", 2)):
+        images = sorted(folders[cam].glob("*.png"))
+        h, w = cv2.imread(str(images[0]), 0).shape
+        writer = cv2.VideoWriter(str(videos / f"{cam}.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 30,
+                                 (w, h))
+        frames = [np.zeros((h, w, 3), np.uint8)] * lead + [
+            cv2.imread(str(png)) for png in images for _ in range(3)]
+        for k, frame in enumerate(frames):
+            writer.write(frame)
+            rows.append(f"{k},{cam},{(k - lead) / 30 + (0.004 if lead else 0.0):.6f}")
+        writer.release()
+    (videos / "timestamps.csv").write_text("\n".join(rows) + "\n")
+    common = ["calibrate-images", f"left={videos / 'left.mp4'}",
+              f"right={videos / 'right.mp4'}", "--board", "checkerboard", "--inner-corners",
+              "8x11", "--square-mm", "15", "--methods", "opencv", "--max-frames", "10"]
+    assert main([*common, "--timestamps", str(videos / "timestamps.csv"),
+                 "--out", str(tmp_path / "timed")]) == 0
+    res = json.loads((tmp_path / "timed" / "results.json").read_text())
+    frames = json.loads((tmp_path / "timed" / "frames.json").read_text())["frames"]
+    both = [f for f in frames if None not in f["files"].values()]
+    # right, the longer video, leads the moments: only its first (black) frame pairs nothing.
+    assert len(both) == len(frames) - 1 >= 7
+    for f in both:
+        left, right = (int(f["files"][c].rpartition("@")[2]) for c in ("left", "right"))
+        assert right == left + 2 and f["time_spread_s"] == pytest.approx(0.004, abs=1e-6)
+    rig = res["rig"]["opencv"]
+    assert abs(rig["baseline_mm"]["right"] - 120.0) < 1.0 and rig["rms_px"] < 0.5
+    assert rig["log"]["covisibility"][0][1] == len(both) and not rig["log"]["orientation"]
+    # Paired by index, most moments mix two poses: the rig stage drops them as views whose
+    # board pose disagrees with the other camera's (orientation.agree), naming each.
+    by_index = tmp_path / "by_index"
+    main([*common, "--out", str(by_index)])
+    log = json.loads((by_index / "results.json").read_text())["rig"]["opencv"]["log"]
+    assert len(log["orientation"]) >= 4 and log["covisibility"][0][1] <= 3
+
+
+def test_timestamps_pair_by_nearest_time_and_are_checked(tmp_path):
+    times = {"a": np.arange(6) / 30, "b": np.delete(np.arange(7) / 30 - 0.01, 3)}
+    moments, spread = paired_by_time(times)
+    # b dropped its fourth frame: moment 3 has none of b's (its nearest is 23 ms off, beyond half
+    # a frame), and the later ones pair b's frames one index lower.
+    assert moments == [{"a": 0, "b": 0}, {"a": 1, "b": 1}, {"a": 2, "b": 2}, {"a": 3},
+                       {"a": 4, "b": 3}, {"a": 5, "b": 4}]
+    np.testing.assert_allclose(spread, [0.01, 0.01, 0.01, 0.0, 0.01, 0.01], atol=1e-12)
+    ts = tmp_path / "ts.csv"
+    ts.write_text("camera,time\n" + "".join(f"cam_0,{t}\n" for t in range(3)))
+    with pytest.raises(ValueError, match="3 rows for camera 'cam_0', whose video has 4 frames"):
+        read_timestamps(ts, {"cam_0": 4})
+    ts.write_text("cam,when\n0,1\n")
+    with pytest.raises(ValueError, match="a time column"):
+        read_timestamps(ts, {"cam_0": 1})
+    ts.write_text("port,time\n0,0.5\n0,x\n")
+    with pytest.raises(ValueError, match="line 3: time 'x' is not a time"):
+        read_timestamps(ts, {"cam_0": 2})
 
 
 def test_pose_eval_takes_a_capture_and_a_calibration_file(rendered, tmp_path, capsys):

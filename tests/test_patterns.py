@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
+from stereo_bench.detect import detect
 from stereo_bench.patterns import (
     PATTERNS,
     AsymmetricCircles,
@@ -185,6 +186,37 @@ def test_charuco_geometry_matches_opencv_board():
         (width, height), marginSize=int(aligned.margin_mm * px_per_mm), borderBits=1
     )
     np.testing.assert_array_equal(aligned.texture(px_per_mm), reference)
+
+
+@pytest.mark.parametrize("squares_y", [12, 11])
+def test_legacy_charuco_is_opencvs_legacy_board(squares_y):
+    """Boards made by OpenCV before 4.6: with an even row count the top-left square is white and
+    the markers move to the other squares; our drawing is OpenCV's own, pixel for pixel, and a
+    detector told the wrong layout finds no corner of an even board."""
+    legacy, px_per_mm = Charuco(marker_mm=11.25, squares_y=squares_y, legacy=True), 8.0
+    height, width = legacy.texture_shape(px_per_mm)
+    reference = legacy.cv_board().generateImage(
+        (width, height), marginSize=int(legacy.margin_mm * px_per_mm), borderBits=1)
+    np.testing.assert_array_equal(legacy.texture(px_per_mm), reference)
+    image = view(legacy, px_per_mm, 1.0)
+    found = detect(image, legacy)
+    assert found.found
+    assert np.abs(found.points - predicted_px(legacy, px_per_mm)).max() < TOLERANCE_PX
+    plain = detect(image, Charuco(marker_mm=11.25, squares_y=squares_y))
+    assert plain.found == (squares_y % 2 == 1)
+
+
+def test_charuco_seen_from_behind_is_found_mirrored_back():
+    """A one-sided print seen through the board is the mirror image: every corner is found at its
+    own id, where it lies in the image."""
+    board, px_per_mm = Charuco(), 6.61
+    image = view(board, px_per_mm, 1.0)
+    width = image.shape[1]
+    expected = predicted_px(board, px_per_mm) * [-1, 1] + [width - 1, 0]
+    for seen in (image[:, ::-1], 255 - image[:, ::-1]):  # against the light: inverted as well
+        found = detect(np.ascontiguousarray(seen), board)
+        assert found.found and np.isfinite(found.points).all()
+        assert np.abs(found.points - expected).max() < TOLERANCE_PX
 
 
 @pytest.mark.parametrize("px_per_mm, sigma", SCALES)
