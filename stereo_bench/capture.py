@@ -48,6 +48,7 @@ from .plots import plot_capture
 from .rundir import CapturePaths, Notes, strict, with_outputs, write_json
 from .stereo import rig_errors
 from .uncertainty import parameter_covariance, projection_uncertainty
+from .view_selection import chosen_views, selection_warnings
 
 DEFAULT_FOLDS = 5
 
@@ -415,11 +416,13 @@ def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration
     dets, detect_s, det_fp = load_or_detect(source, trial, progress, notes)
     clear_calibrations(trial)
     t0 = time.perf_counter()
-    geometry, refused, dropped = view_evidence(source, dets, calibration)
+    # The intrinsics from the sharp views, each board pose once (view_selection's notes).
+    chosen, deselected, blur = chosen_views(source, dets)
+    geometry, refused, dropped = view_evidence(source, chosen, calibration)
     # A refused camera reaches the calibration stage without views (so no method runs on it and
     # no estimate of it is written); its entries then say why, in the refusal's words.
     offered = [dataclasses.replace(d, found=np.zeros_like(d.found)) if c.name in refused else d
-               for c, d in zip(source.cameras, dets)]
+               for c, d in zip(source.cameras, chosen)]
     entries, estimates, left_out = calibrate_cameras(source, offered, methods, trial,
                                                      calibration)
     for name in refused:
@@ -427,6 +430,9 @@ def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration
             entries[m][name] = {"error": f"camera {name!r} not calibrated: "
                                          f"{geometry[name]['refused_brief']} (notes)"}
         left_out[name] = dropped[name]
+    for name, views in deselected.items():
+        if isinstance(left_out.get(name), dict):
+            left_out[name] = dict(sorted({**left_out[name], **views}.items()))
     calibrate_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     for m in methods:
@@ -453,6 +459,9 @@ def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration
         # What each camera's views can determine (diagnostics.view_geometry), and the cameras
         # not calibrated because of it, with the reason.
         "view_geometry": geometry,
+        # Each camera's blur per view (view_selection.edge_spread), the basis of the views left
+        # out as blurred.
+        "view_blur": blur,
         "refused": refused,
         "agreement": {c.name: agreement({m: estimates[m, c.name] for m in methods
                                           if (m, c.name) in estimates})
@@ -461,7 +470,8 @@ def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration
         "warnings": list(source.warnings),
         "detections_fingerprint": det_fp,
     }
-    results["warnings"] += failures(results) + flags(results)
+    results["warnings"] += selection_warnings(deselected, source.frame_name) + \
+        failures(results) + flags(results)
     diagnostics_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     if len(source.cameras) >= 2:
