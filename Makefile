@@ -16,6 +16,11 @@ $(BIN)/stereo-bench: pyproject.toml
 	# asks for opencv-contrib-python, which would replace the headless OpenCV in the same cv2.
 	$(BIN)/python -m pip install --quiet numba pandas tqdm toml
 	$(BIN)/python -m pip install --quiet --no-deps aniposelib==0.8.0
+	# caliscope, to read camera_array.toml files back in the tests: its camera array needs only
+	# rtoml and platformdirs (and pandas, above); without its dependencies for the same reason
+	# (opencv-python) and because its video stack (av) is not used.
+	$(BIN)/python -m pip install --quiet rtoml platformdirs
+	$(BIN)/python -m pip install --quiet --no-deps caliscope==0.11.8
 	# mrcal, to read .cameramodel files back in the tests, has no wheel for Python < 3.12: a
 	# small environment of its own when a python3.12 or newer is found (else those tests skip).
 	-$(MAKE) --no-print-directory mrcal-env

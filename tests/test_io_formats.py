@@ -1,6 +1,6 @@
 """Exchange formats: every writer's files read back by its reader and by the real tool's library
-(cv2.FileStorage + cv2.projectPoints, pycolmap, aniposelib, mrcal where a Python with it is
-found), projections of random 3D points agreeing to 1e-9 px; the refusals; malformed files."""
+(cv2.FileStorage + cv2.projectPoints, pycolmap, aniposelib, caliscope, mrcal where a Python with
+it is found), projections of random 3D points agreeing to 1e-9 px; the refusals; malformed files."""
 
 import ast
 import os
@@ -14,7 +14,7 @@ import yaml
 
 from stereo_bench import io as formats
 from stereo_bench.camera import Camera, look_at_rotation, matrix_to_rodrigues, rodrigues_to_matrix
-from stereo_bench.io import anipose, colmap, easymocap, kalibr, mrcal, opencv_yaml
+from stereo_bench.io import anipose, caliscope, colmap, easymocap, kalibr, mrcal, opencv_yaml
 
 TOL_PX = 1e-9
 TARGET = np.array([0.0, 0.0, 2000.0])  # every camera of a test rig looks at it (mm)
@@ -277,6 +277,65 @@ def test_anipose_keeps_the_order_of_more_than_ten_cameras(tmp_path):
 
 
 # ----------------------------------------------------------------------------------------------
+# caliscope
+# ----------------------------------------------------------------------------------------------
+
+def caliscope_projections(camera, X):
+    """X (mm) projected as caliscope does: cv2.projectPoints with its matrix, distortions and
+    [R | t] (cam_from_world, metres)."""
+    return cv2_project(X / 1000.0, camera.matrix, camera.distortions,
+                       cv2.Rodrigues(camera.rotation)[0], camera.translation)
+
+
+def test_caliscope_file_matches_caliscope(tmp_path):
+    """Written here, read by caliscope's CameraArray.from_toml; written by its to_toml, read
+    here: the same projections to 1e-9 px both ways (cameras named cam_<id>, in the rig's order)."""
+    camera_array = pytest.importorskip("caliscope.cameras.camera_array")
+    rng = np.random.default_rng(15)
+    cams = random_rig(rng, [5, 8, 5], ["cam_0", "cam_1", "cam_2"])
+    (path,) = caliscope.write(cams, tmp_path / "ours")
+    X = random_points(rng)
+    assert_same_rig(caliscope.read(path), cams, X)
+    theirs = camera_array.CameraArray.from_toml(path)
+    assert sorted(theirs.cameras) == [0, 1, 2]
+    for i, cam in enumerate(cams):
+        c = theirs.cameras[i]
+        assert tuple(c.size) == cam.size and len(c.distortions) == (8 if i == 1 else 5)
+        assert max_dpx(caliscope_projections(c, X), cam.project(X)) < TOL_PX
+    theirs.to_toml(tmp_path / "theirs" / caliscope.FILE)
+    assert_same_rig(formats.load(tmp_path / "theirs"), cams, X)
+
+
+def test_caliscope_older_sessions_and_intrinsics_only(tmp_path):
+    """An older session's config.toml ([cam_<id>], 3x3 rotation) reads as the same rig; an
+    array before its extrinsics are calibrated reads as intrinsics at the identity; one where
+    only some cameras have a pose, or a camera whose images were turned, is refused."""
+    rng = np.random.default_rng(16)
+    cams = random_rig(rng, [5, 5], ["cam_0", "cam_1"])
+    lines = []
+    for i, cam in enumerate(cams):
+        lines += [f"[cam_{i}]", f"cam_id = {i}", f"size = {list(cam.size)}",
+                  f"matrix = {cam.K.tolist()}", f"distortions = {cam.dist[:5].tolist()}",
+                  f"rotation = {cam.R.tolist()}", f"translation = {(cam.tvec / 1e3).tolist()}",
+                  ""]
+    (tmp_path / "config.toml").write_text("\n".join(lines))
+    assert formats.guess_format(tmp_path / "config.toml") == "caliscope"
+    assert_same_rig(formats.load(tmp_path), cams, random_points(rng))
+    unposed = "\n".join(ln for ln in lines if not ln.startswith(("rotation", "translation")))
+    (tmp_path / "config.toml").write_text(unposed)
+    back = formats.load(tmp_path)
+    assert [c.fx for c in back] == [c.fx for c in cams]
+    assert all(not c.rvec.any() and not c.tvec.any() for c in back)
+    (tmp_path / "config.toml").write_text("\n".join(lines[:8]) + "\n" + unposed.split("\n\n")[1])
+    with pytest.raises(ValueError, match="cam_1 have no rotation and translation"):
+        formats.load(tmp_path)
+    (tmp_path / "config.toml").write_text("\n".join(lines).replace("cam_id = 1", "cam_id = 1\n"
+                                                                     "rotation_count = 1"))
+    with pytest.raises(ValueError, match=r"\[cam_1\]: rotation_count 1: its images were turned"):
+        formats.load(tmp_path)
+
+
+# ----------------------------------------------------------------------------------------------
 # mrcal
 # ----------------------------------------------------------------------------------------------
 
@@ -351,13 +410,16 @@ def test_mrcal_reads_the_files_and_kalibr_chain(tmp_path):
 # The registry, the refusals, malformed files
 # ----------------------------------------------------------------------------------------------
 
-SUBSETS = {"opencv": 8, "colmap": 8, "kalibr": 4, "easymocap": 5, "anipose": 8, "mrcal": 8}
+SUBSETS = {"opencv": 8, "colmap": 8, "kalibr": 4, "easymocap": 5, "anipose": 8, "caliscope": 8,
+           "mrcal": 8}
 
 
 @pytest.mark.parametrize("fmt", list(formats.FORMATS))
 def test_export_and_load_guess_every_format(tmp_path, fmt):
     rng = np.random.default_rng(12)
-    cams = random_rig(rng, [SUBSETS[fmt]] * 3)
+    # caliscope keeps no names: its cameras are cam_<id>.
+    cams = random_rig(rng, [SUBSETS[fmt]] * 3,
+                      [f"cam_{i}" for i in range(3)] if fmt == "caliscope" else None)
     files = formats.export(cams, tmp_path / fmt, fmt)
     X = random_points(rng)
     assert_same_rig(formats.load(tmp_path / fmt), cams, X)
@@ -381,6 +443,7 @@ def test_load_and_export_name_what_they_cannot_handle(tmp_path):
     ("kalibr", {"skew": 0.5}, "skew 0.5 is not 0; Kalibr"),
     ("easymocap", {"skew": 0.5}, "skew 0.5 is not 0; EasyMocap"),
     ("anipose", {"skew": 0.5}, "skew 0.5 is not 0; aniposelib"),
+    ("caliscope", {"skew": 0.5}, "skew 0.5 is not 0; caliscope"),
     ("mrcal", {"skew": 0.5}, "skew 0.5 is not 0; mrcal"),
     ("kalibr", {"dist": [0.1, 0.01, 0, 0, 0.003]}, "k3 = 0.003 is not 0; Kalibr's radtan"),
     ("easymocap", {"dist": [0.1, 0.01, 0, 0, 0.003, 0.02]}, "k4 = 0.02 is not 0; EasyMocap"),
@@ -415,6 +478,10 @@ MALFORMED = [
     ("easymocap", "intri.yml", "%YAML:1.0\n---\nnames: [\"a\"]\n", r"intri.yml: camera 'a': K_a"),
     ("anipose", "calibration.toml", "[cam_0\nname = 1", r"calibration.toml: not TOML"),
     ("anipose", "calibration.toml", "[cam_0]\nname = \"a\"\n", r"\[cam_0\]: missing 'matrix'"),
+    ("caliscope", "camera_array.toml", "[cameras.x]\nsize = [1, 1]\n",
+     r"camera_array.toml: \[cameras.x\]: expected a camera id"),
+    ("caliscope", "camera_array.toml", "[cameras.0]\nfisheye = true\n",
+     r"\[cameras.0\]: a fisheye camera"),
     ("mrcal", "a.cameramodel", "{'lensmodel': 'LENSMODEL_OPENCV4',", r"a.cameramodel: not a "),
     ("mrcal", "b.cameramodel", "{'lensmodel': 'LENSMODEL_SPLINED_STEREOGRAPHIC_order=3', "
      "'intrinsics': [], 'rt_cam_ref': [0, 0, 0, 0, 0, 0], 'imagersize': [1, 1]}",

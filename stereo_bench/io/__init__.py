@@ -13,6 +13,7 @@ colmap         COLMAP text model: cameras.txt, images.txt, points3D.txt (:mod:`.
 kalibr         Kalibr camchain.yaml (:mod:`.kalibr`)
 easymocap      EasyMocap intri.yml and extri.yml (:mod:`.easymocap`)
 anipose        anipose / aniposelib calibration.toml (:mod:`.anipose`)
+caliscope      caliscope camera_array.toml (and its older sessions' config.toml) (:mod:`.caliscope`)
 mrcal          mrcal .cameramodel files (:mod:`.mrcal`)
 =============  ===============================================================================
 
@@ -27,7 +28,7 @@ from pathlib import Path
 from typing import Sequence
 
 from ..camera import Camera
-from . import anipose, colmap, easymocap, kalibr, mrcal, opencv_yaml
+from . import anipose, caliscope, colmap, easymocap, kalibr, mrcal, opencv_yaml
 
 FORMATS = {
     "opencv": opencv_yaml,
@@ -35,6 +36,7 @@ FORMATS = {
     "kalibr": kalibr,
     "easymocap": easymocap,
     "anipose": anipose,
+    "caliscope": caliscope,
     "mrcal": mrcal,
 }
 
@@ -67,11 +69,13 @@ def guess_format(path) -> str:
             return "mrcal"
         if anipose.FILE in names:
             return "anipose"
+        if names & {caliscope.FILE, caliscope.LEGACY_FILE}:
+            return "caliscope"
         if names & {opencv_yaml.STEREO_FILE, opencv_yaml.MULTICAM_FILE}:
             return "opencv"
         raise ValueError(f"{path}: cannot tell the format of this folder (expected cameras.txt, "
                          f"intri.yml and extri.yml, camchain*.yaml, *{mrcal.SUFFIX}, "
-                         f"{anipose.FILE}, {opencv_yaml.STEREO_FILE} or "
+                         f"{anipose.FILE}, {caliscope.FILE}, {opencv_yaml.STEREO_FILE} or "
                          f"{opencv_yaml.MULTICAM_FILE}); name it with fmt=")
     if not path.is_file():
         raise ValueError(f"{path}: no such file or folder")
@@ -82,6 +86,8 @@ def guess_format(path) -> str:
         return "kalibr"
     if name in easymocap.FILES:
         return "easymocap"
+    if name in (caliscope.FILE, caliscope.LEGACY_FILE):
+        return "caliscope"
     if name.endswith(".toml"):
         return "anipose"
     if name in colmap.FILES:

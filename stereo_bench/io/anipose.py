@@ -42,13 +42,13 @@ MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": common.MM_PER_M}
 _TABLE = re.compile(r"cam_(\d+)")
 
 
-def _toml(value) -> str:
-    """A TOML value for a string, an int, a float or nested lists of them (floats as Python's
-    shortest round-trip repr, which TOML accepts)."""
-    if isinstance(value, str):
-        return json.dumps(value)  # a JSON string is a TOML basic string
+def toml_value(value) -> str:
+    """A TOML value for a string, a bool, an int, a float or nested lists of them (floats as
+    Python's shortest round-trip repr, which TOML accepts)."""
+    if isinstance(value, (str, bool)):
+        return json.dumps(value)  # a JSON string or boolean is a TOML one too
     if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml(v) for v in value) + "]"
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
     if isinstance(value, (int, np.integer)):
         return str(int(value))
     return repr(float(value))
@@ -63,11 +63,11 @@ def write(cameras: Sequence[Camera], out_dir) -> list[Path]:
     lines = []
     for i, cam in enumerate(cameras):
         dist = cam.dist if np.any(cam.dist[5:]) else cam.dist[:5]
-        lines += [f"[cam_{i:0{width}d}]"] + [f"{k} = {_toml(v)}" for k, v in (
+        lines += [f"[cam_{i:0{width}d}]"] + [f"{k} = {toml_value(v)}" for k, v in (
             ("name", cam.name), ("size", [cam.width, cam.height]), ("matrix", cam.K.tolist()),
             ("distortions", dist.tolist()), ("rotation", cam.rvec.tolist()),
             ("translation", cam.tvec.tolist()))] + [""]
-    lines += ["[metadata]", f"length_unit = {_toml(LENGTH_UNIT)}", ""]
+    lines += ["[metadata]", f"length_unit = {toml_value(LENGTH_UNIT)}", ""]
     return [write_text(Path(out_dir) / FILE, "\n".join(lines))]
 
 

@@ -27,9 +27,11 @@ MM_PER_M = 1000.0
 ROTATION_TOLERANCE = 1e-6
 
 
-def rig(cameras: Sequence[Camera], fmt: str, min_count: int = 1) -> list[Camera]:
+def rig(cameras: Sequence[Camera], fmt: str, min_count: int = 1, posed: bool = True
+        ) -> list[Camera]:
     """The cameras as a list, refused (ValueError naming the entry) unless they are at least
-    ``min_count`` stereo_bench Cameras with distinct names."""
+    ``min_count`` stereo_bench Cameras with distinct names, plausible, and (``posed``: they are
+    a rig, not cameras known for their intrinsics only) with distinct centres."""
     if isinstance(cameras, Camera):
         cameras = [cameras]
     cameras = list(cameras)
@@ -46,7 +48,7 @@ def rig(cameras: Sequence[Camera], fmt: str, min_count: int = 1) -> list[Camera]
     for cam in cameras:
         plausible(cam, fmt)
     centres = np.array([cam.center for cam in cameras])
-    for a in range(len(cameras)):
+    for a in range(len(cameras) if posed else 0):
         for b in range(a + 1, len(cameras)):
             if np.linalg.norm(centres[a] - centres[b]) < MIN_BASELINE_MM:
                 raise ValueError(f"{fmt}: cameras {names[a]!r} and {names[b]!r} share one centre "
