@@ -53,12 +53,18 @@ from .view_selection import chosen_views, selection_warnings
 DEFAULT_FOLDS = 5
 
 
-def _estimate_report(method: str, est: Estimate, folds: int, seed: int) -> dict:
-    """The truth-free checks of one camera's estimate by one method (module notes)."""
+def _estimate_report(method: str, est: Estimate, folds: int, seed: int,
+                     given: str | None = None) -> dict:
+    """The truth-free checks of one camera's estimate by one method (module notes). ``given``:
+    where the camera's intrinsics came from when they were not estimated here (then only its
+    poses were fitted: no intrinsics to hold out, no covariance of them)."""
     result, obs = est.result, est.obs
-    params = get_calibrator(method).model_parameters
+    params = () if given else get_calibrator(method).model_parameters
     report = {"diagnostics": diagnose(result.camera, obs, result.rvecs, result.tvecs, params,
                                       seed=seed)}
+    if given:
+        why = f"intrinsics given ({given}), not estimated from these images"
+        return {**report, "heldout": {"error": why}, "uncertainty": {"error": why}}
     try:
         report["heldout"] = heldout(method, obs, k=folds, seed=seed)
     except ValueError as e:
@@ -232,10 +238,11 @@ def _opencv_rig(rig, image_points, source) -> dict:
     return out
 
 
-def view_evidence(source: ImageFolders, dets, calibration: CalibrationConfig
+def view_evidence(source: ImageFolders, dets, calibration: CalibrationConfig, given=()
                   ) -> tuple[dict[str, dict], dict[str, str], dict[str, dict]]:
     """Before any method runs: per camera with usable views, what they can determine
-    (diagnostics.view_geometry); the cameras they cannot determine, with the reason in words
+    (diagnostics.view_geometry); the cameras they cannot determine (except those whose
+    intrinsics are ``given``, which the views need not determine), with the reason in words
     (naming the camera, and the board's description when it was found in few images: a wrong
     --inner-corners matches a sub-grid in a few views only); and each camera's found views left
     out (evaluate.observations). A camera without any usable view is left to the calibration
@@ -252,7 +259,7 @@ def view_evidence(source: ImageFolders, dets, calibration: CalibrationConfig
         except (ValueError, np.linalg.LinAlgError) as e:  # the methods will tell
             geometry[cam.name] = {"error": f"{type(e).__name__}: {e}"}
             continue
-        if g["refused"] is None:
+        if g["refused"] is None or cam.name in given:
             continue
         images = sum(p is not None for p in source.files[c])
         why = f"camera {cam.name!r} not calibrated: {g['refused']}"
@@ -350,11 +357,12 @@ def empty_regions(counts) -> list[str]:
 
 
 def recapture(results: dict) -> list[str]:
-    """What to shoot again, per camera, in words: the parts of its image no view of the board
-    reached (where every estimate extrapolates its distortion), and the views that would reach
-    them."""
+    """What to shoot again, per camera whose intrinsics were estimated here, in words: the parts
+    of its image no view of the board reached (where every estimate extrapolates its
+    distortion), and the views that would reach them."""
     out = []
-    for cam in (c["name"] for c in results["cameras"]):
+    given = (results.get("intrinsics_given") or {}).get("cameras", [])
+    for cam in (c["name"] for c in results["cameras"] if c["name"] not in given):
         cov = next((e["diagnostics"]["coverage"] for cams in results["calibration"].values()
                     for name, e in cams.items() if name == cam and "diagnostics" in e), None)
         if cov is None:
@@ -397,14 +405,33 @@ def _board_hint(pattern) -> str:
     return "is the board described right (its kind, size and counts)?"
 
 
+def given_intrinsics(cameras: list, source: ImageFolders, where: str) -> dict:
+    """The cameras of a calibration file (``where``) whose names are the capture's, by name;
+    ValueError naming the file when none is, or when one's image size is not its camera's."""
+    by_name = {c.name: c for c in source.cameras}
+    given = {c.name: c for c in cameras if c.name in by_name}
+    if not given:
+        raise ValueError(f"--intrinsics {where}: its cameras {[c.name for c in cameras]} are "
+                         f"none of the capture's {list(by_name)}; expected the same names")
+    for name, cam in given.items():
+        if cam.size != by_name[name].size:
+            raise ValueError(f"--intrinsics {where}: camera {name!r} is {cam.width}x{cam.height} "
+                             f"px there, its images {by_name[name].width}x"
+                             f"{by_name[name].height} px")
+    return given
+
+
 def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration:
                       CalibrationConfig = CalibrationConfig(), folds: int = DEFAULT_FOLDS,
-                      seed: int = 0, progress=None, notes_in: list[str] = ()) -> dict:
+                      seed: int = 0, progress=None, notes_in: list[str] = (),
+                      given: dict | None = None, given_from: str = "") -> dict:
     """Every stage on a real capture, written under ``out`` (module notes); returns the dict
     written to results.json. A camera or method that fails is recorded with its reason and the
     others go on; the detections are reused only for the same images and board. ``notes_in``:
     what the caller found out about the capture (e.g. a measured disc diameter), kept in the
-    results."""
+    results. ``given``: cameras whose intrinsics come from a file (``given_intrinsics``;
+    ``given_from`` names it), kept for every method, only their poses fitted."""
+    given = given or {}
     for m in methods:
         get_calibrator(m)
     paths = CapturePaths(out)
@@ -418,13 +445,13 @@ def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration
     t0 = time.perf_counter()
     # The intrinsics from the sharp views, each board pose once (view_selection's notes).
     chosen, deselected, blur = chosen_views(source, dets)
-    geometry, refused, dropped = view_evidence(source, chosen, calibration)
+    geometry, refused, dropped = view_evidence(source, chosen, calibration, given)
     # A refused camera reaches the calibration stage without views (so no method runs on it and
     # no estimate of it is written); its entries then say why, in the refusal's words.
     offered = [dataclasses.replace(d, found=np.zeros_like(d.found)) if c.name in refused else d
                for c, d in zip(source.cameras, chosen)]
     entries, estimates, left_out = calibrate_cameras(source, offered, methods, trial,
-                                                     calibration)
+                                                     calibration, given)
     for name in refused:
         for m in methods:
             entries[m][name] = {"error": f"camera {name!r} not calibrated: "
@@ -438,8 +465,9 @@ def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration
     for m in methods:
         for cam in source.cameras:
             if (m, cam.name) in estimates:
-                entries[m][cam.name].update(
-                    _estimate_report(m, estimates[m, cam.name], folds, seed))
+                entries[m][cam.name].update(_estimate_report(
+                    m, estimates[m, cam.name], folds, seed,
+                    given_from if cam.name in given else None))
     results = {
         "kind": "capture",
         "pattern": {"kind": source.pattern.kind, **{
@@ -459,6 +487,8 @@ def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration
         # What each camera's views can determine (diagnostics.view_geometry), and the cameras
         # not calibrated because of it, with the reason.
         "view_geometry": geometry,
+        # The cameras whose intrinsics came from a file, and the file.
+        "intrinsics_given": {"file": given_from, "cameras": sorted(given)} if given else None,
         # Each camera's blur per view (view_selection.edge_spread), the basis of the views left
         # out as blurred.
         "view_blur": blur,
@@ -470,6 +500,10 @@ def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration
         "warnings": list(source.warnings),
         "detections_fingerprint": det_fp,
     }
+    if given:
+        results["warnings"].append(
+            f"camera(s) {', '.join(sorted(given))}: intrinsics from {given_from}, not estimated "
+            f"from these images; every method keeps them (their rows differ only in the rig)")
     results["warnings"] += selection_warnings(deselected, source.frame_name) + \
         failures(results) + flags(results)
     diagnostics_s = time.perf_counter() - t0

@@ -305,6 +305,13 @@ def cmd_calibrate_images(args) -> int:
         measured.append(note)
         console.print(note, markup=False, highlight=False)
     out = Path(args.out or Path("out") / "capture")
+    given = {}
+    if args.intrinsics:
+        from . import io
+        from .capture import given_intrinsics
+
+        given = given_intrinsics(io.load(args.intrinsics, args.intrinsics_format), source,
+                                 args.intrinsics)
     calibration = CalibrationConfig(refine_intrinsics=args.refine_intrinsics)
     if not 2 <= args.folds <= 100:
         raise ValueError(f"--folds: expected 2..100, got {args.folds}")
@@ -315,7 +322,8 @@ def cmd_calibrate_images(args) -> int:
         task = bar.add_task("detect", total=None)
         results = calibrate_capture(source, methods, out, calibration, args.folds,
                                     progress=lambda d, n: bar.update(task, completed=d, total=n),
-                                    notes_in=measured)
+                                    notes_in=measured, given=given,
+                                    given_from=args.intrinsics or "")
     paths = CapturePaths(out)
     title = f"Calibration of {', '.join(c.name for c in source.cameras)} from their images"
     text = capture_markdown(results, title)
@@ -433,6 +441,7 @@ def build_parser() -> argparse.ArgumentParser:
     u.set_defaults(func=cmd_run)
 
     from .image_folders import MAX_VIDEO_FRAMES
+    from .io import FORMATS
 
     i = sub.add_parser("calibrate-images",
                        help="calibrate your own images (one folder per camera) with every method",
@@ -487,12 +496,16 @@ def build_parser() -> argparse.ArgumentParser:
                         "such as zhang-brown, and opencv-rational)")
     i.add_argument("--folds", type=int, default=5,
                    help="k of the k-fold held-out error (default: %(default)s)")
+    i.add_argument("--intrinsics", metavar="FILE",
+                   help="a calibration file (any format of `export`) whose cameras, matched by "
+                        "name, keep its intrinsics: only their board poses and the rig are "
+                        "fitted (e.g. intrinsics calibrated from separate videos)")
+    i.add_argument("--intrinsics-format", dest="intrinsics_format", choices=sorted(FORMATS),
+                   help="the format of --intrinsics (default: guessed from the file name)")
     i.add_argument("--refine-intrinsics", dest="refine_intrinsics", action="store_true",
                    help="let the rig's bundle adjustment refine each camera's intrinsics")
     i.add_argument("--out", help="output directory (default: out/capture)")
     i.set_defaults(func=cmd_calibrate_images)
-
-    from .io import FORMATS
 
     e = sub.add_parser("export", help="write a run's or a capture's estimates for another tool",
                        description="Write one method's estimates (the calibrated rig, or each "

@@ -175,12 +175,27 @@ class Estimate:
     obs: Observations
 
 
+def with_given_intrinsics(camera: Camera, obs: Observations) -> CalibrationResult:
+    """A camera whose intrinsics come from elsewhere (``camera``: a calibration file's), with the
+    board pose of each view of ``obs`` fitted through them (stereo.planar_pose: the homography,
+    then the reprojection error's minimum with the intrinsics fixed)."""
+    from .stereo import planar_pose
+
+    poses = [planar_pose(camera, o, i) for o, i in zip(obs.object_points, obs.image_points)]
+    return CalibrationResult(camera.with_params(name=obs.camera_name, rvec=np.zeros(3),
+                                                tvec=np.zeros(3)),
+                             np.array([r for r, _ in poses]), np.array([t for _, t in poses]),
+                             {"method": "given", "notes": ["intrinsics given, poses fitted"]})
+
+
 def calibrate_cameras(source, dets: list[CameraDetections], methods: list[str],
-                      trial: TrialPaths, calibration: CalibrationConfig
+                      trial: TrialPaths, calibration: CalibrationConfig,
+                      given: dict[str, Camera] | None = None
                       ) -> tuple[dict, dict[tuple[str, str], Estimate], dict]:
     """Calibrate every camera of ``source`` (a rendered ``Dataset`` or a real capture's
     ``ImageFolders``: they share this stage) with every method, saving each estimate under
-    ``trial``.
+    ``trial``. A camera in ``given`` (name -> Camera) keeps those intrinsics for every method,
+    only its board poses fitted (``with_given_intrinsics``), and its entries say so.
 
     Returns ``entries[method][camera]`` (``summary`` plus the wall time, or ``{"error": ...}``),
     the estimates by (method, camera), and per camera the found views left out with the reason
@@ -201,11 +216,14 @@ def calibrate_cameras(source, dets: list[CameraDetections], methods: list[str],
         for m in methods:
             t0 = time.perf_counter()
             try:
-                result = get_calibrator(m).calibrate(obs)
+                result = (with_given_intrinsics(given[cam.name], obs)
+                          if cam.name in (given or {}) else get_calibrator(m).calibrate(obs))
                 result = CalibrationResult(result.camera.with_params(name=cam.name),
                                            result.rvecs, result.tvecs, result.log)
                 save_calibration(result, obs, trial, m)
                 entry = summary(result, obs)
+                if cam.name in (given or {}):
+                    entry["intrinsics_given"] = True
                 estimates[m, cam.name] = Estimate(result, obs)
             except (ValueError, np.linalg.LinAlgError, RuntimeError) as e:
                 entry = {"error": f"{type(e).__name__}: {e}"}

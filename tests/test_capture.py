@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
+from stereo_bench.camera import Camera
 from stereo_bench.capture import calibrate_capture
 from stereo_bench.cli import main
 from stereo_bench.config import ConfigError, parse_rig
@@ -321,3 +322,48 @@ def test_pose_eval_takes_a_capture_and_a_calibration_file(rendered, tmp_path, ca
     assert list(res["methods"]) == ["gt"]
     assert res["methods"]["gt"]["triangulated"]["mpjpe_mm"]["mean"] == pytest.approx(
         tri["gt"]["mpjpe_mm"]["mean"], rel=1e-6)  # the same rig, read back from the file
+
+
+def test_intrinsics_from_a_file_fit_only_the_poses_and_the_rig(rendered, tmp_path, capsys):
+    """--intrinsics FILE: the file's cameras (here the true ones, named as the capture's) keep
+    their intrinsics for every method, even where the views alone could not determine them (one
+    view, refused without the file); the rig from them is the true one. A file whose cameras the capture does not have, or of another size, is
+    refused naming it."""
+    from stereo_bench.io import anipose, caliscope
+
+    cfg, _, folders, _ = rendered
+    truth = cfg.cameras_true()
+    (named,) = anipose.write(truth, tmp_path / "a")
+    (path,) = caliscope.write(truth, tmp_path / "c")  # cameras cam_0, cam_1
+    few = tmp_path / "few"
+    for cam, folder in folders.items():
+        (few / cam).mkdir(parents=True)
+        for png in sorted(folder.glob("*.png"))[:1]:
+            shutil.copy(png, few / cam / png.name)
+    board = ["--board", "checkerboard", "--inner-corners", "8x11", "--square-mm", "15"]
+    cams = [f"{c}={few / c}" for c in folders]
+    assert main(["calibrate-images", *cams, *board, "--methods", "opencv",
+                 "--out", str(tmp_path / "without")]) == 1
+    assert main(["calibrate-images", *cams, *board, "--intrinsics", str(named), "--methods",
+                 "opencv,zhang", "--out", str(tmp_path / "with")]) == 0
+    res = json.loads((tmp_path / "with" / "results.json").read_text())
+    assert res["intrinsics_given"] == {"file": str(named), "cameras": ["left", "right"]}
+    for m in ("opencv", "zhang"):
+        back = Camera.load_json(tmp_path / "with" / "calibrations" / m / "left.json")
+        assert back.fx == truth[0].fx and np.array_equal(back.dist, truth[0].dist)
+        e = res["calibration"][m]["left"]
+        assert e["intrinsics_given"] and e["rpe_rms_px"] < 0.05 and e["views"] == 1
+        rig = res["rig"][m]
+        assert abs(rig["baseline_mm"]["right"] - 120.0) < 0.5
+    assert res["recapture"] == []  # nothing to recapture for intrinsics not fitted here
+    assert "intrinsics from" in capsys.readouterr().err
+    assert main(["calibrate-images", *cams, *board, "--intrinsics", str(path),
+                 "--out", str(tmp_path / "x")]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "are none of the capture's ['left', 'right']" in err
+    wrong = named.read_text().replace("size = [640, 480]", "size = [1280, 960]", 1)
+    named.write_text(wrong)
+    assert main(["calibrate-images", *cams, *board, "--intrinsics", str(named),
+                 "--out", str(tmp_path / "y")]) == 2
+    assert "camera 'left' is 1280x960 px there, its images 640x480 px" in \
+        " ".join(capsys.readouterr().err.split())
