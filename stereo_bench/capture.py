@@ -44,7 +44,8 @@ from .metrics import projection_difference
 from .multiview_ref import opencv_multiview
 from .orientation import described
 from .pipeline import rig_of, rig_summary
-from .plots import plot_capture
+from .next_view import in_words, suggest
+from .plots import plot_capture, primary_method
 from .rundir import CapturePaths, Notes, strict, with_outputs, write_json
 from .stereo import rig_errors
 from .uncertainty import parameter_covariance, projection_uncertainty
@@ -225,7 +226,7 @@ def _opencv_rig(rig, image_points, source) -> dict:
     try:
         ref = opencv_multiview(rig.cameras, source.object_points, image_points, seen)
     except (ValueError, np.linalg.LinAlgError, ImportError) as e:
-        return {"error": f"{type(e).__name__}: {e}"}
+        return {"error": f"not run: {e}"}
     out = {"opencv_version": ref.log.get("opencv_version"), "rms_px": ref.rms_px,
            "frames_used": int(ref.frames_used.sum()), "cameras": {}}
     diff = rig_errors(ref.cameras, rig.cameras)  # OpenCV's rig against the project's
@@ -356,13 +357,39 @@ def empty_regions(counts) -> list[str]:
             if counts[np.ix_(r, c)].sum() == 0]
 
 
+def next_views(source: ImageFolders, estimates: dict, results: dict, given) -> dict:
+    """Per camera whose intrinsics were estimated here, the board views that would most reduce
+    its projection uncertainty where it is largest (next_view.suggest), for the estimate the
+    figures show (plots.primary_method) when its model is OpenCV's."""
+    out = {}
+    for cam in source.cameras:
+        m = primary_method(results, cam.name)
+        params = get_calibrator(m).model_parameters if m else None
+        if params is None or cam.name in given:
+            continue
+        est = estimates[m, cam.name]
+        counts = results["calibration"][m][cam.name]["diagnostics"]["coverage"]["counts"]
+        try:
+            out[cam.name] = {"method": m, "views": suggest(
+                est.result.camera, est.obs, est.result.rvecs, est.result.tvecs, params,
+                source.object_points, counts)}
+        except (ValueError, np.linalg.LinAlgError) as e:
+            out[cam.name] = {"method": m, "error": f"no view suggested: {e}"}
+    return out
+
+
 def recapture(results: dict) -> list[str]:
-    """What to shoot again, per camera whose intrinsics were estimated here, in words: the parts
-    of its image no view of the board reached (where every estimate extrapolates its
-    distortion), and the views that would reach them."""
+    """What to shoot again, per camera whose intrinsics were estimated here, in words: the
+    views that would most reduce its projection uncertainty where it is largest
+    (``next_views``); for a camera without them, the parts of its image no view of the board
+    reached (where every estimate extrapolates its distortion)."""
     out = []
     given = (results.get("intrinsics_given") or {}).get("cameras", [])
     for cam in (c["name"] for c in results["cameras"] if c["name"] not in given):
+        views = results.get("next_views", {}).get(cam, {}).get("views")
+        if views:
+            out += [in_words(cam, v, k) for k, v in enumerate(views, 1)]
+            continue
         cov = next((e["diagnostics"]["coverage"] for cams in results["calibration"].values()
                     for name, e in cams.items() if name == cam and "diagnostics" in e), None)
         if cov is None:
@@ -515,6 +542,7 @@ def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration
             write_json(trial.rig(m), with_outputs(entry, trial.rig(m)))
         results["warnings"] += _rig_warnings(results["rig"], source) + \
             baseline_outliers(results["rig"])
+    results["next_views"] = next_views(source, estimates, results, given)
     results["recapture"] = recapture(results)
     results["timing"] = {"detect_s": detect_s, "calibrate_s": calibrate_s,
                          "diagnostics_s": diagnostics_s, "rig_s": time.perf_counter() - t0}

@@ -415,8 +415,17 @@ def plot_capture_camera(results: dict, est, frame_names: list[str], path: Path) 
                        cmap=plt.get_cmap("magma").with_extremes(bad="0.6"))
         fig.colorbar(im, ax=ax, shrink=0.8, label="1σ (px), log scale")
         ax.plot(uv[:, 0], uv[:, 1], ",", color="w", alpha=0.3)
+        # The views capture.next_views suggests, numbered as the recapture lines list them.
+        suggested = results.get("next_views", {}).get(cam.name, {}).get("views", [])
+        for k, view in enumerate(suggested, 1):
+            outline = np.array(view["outline_px"] + view["outline_px"][:1])
+            ax.plot(outline[:, 0], outline[:, 1], "--", color="tab:cyan", lw=1.2)
+            ax.text(*outline[:-1].mean(axis=0), str(k), color="tab:cyan", fontsize=9,
+                    ha="center", va="center", fontweight="bold")
+        ax.set_xlim(u[0], u[-1])
+        ax.set_ylim(v[-1], v[0])
         ax.set_title(f"projection uncertainty at {proj_unc['distance_mm']:.0f} mm (dots: "
-                     f"features)", fontsize=8)
+                     f"features{'; dashed: views to add' if suggested else ''})", fontsize=8)
     else:
         ax.set_title("no projection uncertainty for this method's model", fontsize=8)
     ax.set_xlabel("u (px)")

@@ -207,6 +207,25 @@ def _worst_direction(cov: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[..., -1], 0.0))
 
 
+def residual_sigma(camera: Camera, obs: Observations, rvecs, tvecs, parameters) -> float:
+    """The per-coordinate residual standard deviation of a fit (px), over its degrees of
+    freedom: the noise every propagation here scales with."""
+    return float(np.sqrt(_linearized(camera, obs, rvecs, tvecs, parameters)[2]))
+
+
+def worst_sigma(camera: Camera, obs: Observations, rvecs, tvecs, parameters: Sequence[str], uv,
+                distance_mm: float, sigma_px: float | None = None) -> np.ndarray:
+    """(M,) px: the worst-direction 1-sigma of the mean-frames projection of pixels ``uv``
+    (M, 2) at ``distance_mm``, the detections' noise ``sigma_px`` (default: the fit's own, as
+    ``residual_sigma``). With a view that was not fitted among ``obs`` (its projected points as
+    observed), it predicts what that view would leave (next_view.py)."""
+    lin, _, sigma2, _ = _linearized(camera, obs, rvecs, tvecs, parameters)
+    sigma2 = sigma2 if sigma_px is None else float(sigma_px) ** 2
+    return _worst_direction(_propagate(lin, sigma2, camera, rvecs, tvecs,
+                                       np.asarray(uv, np.float64).reshape(-1, 2), distance_mm,
+                                       parameters))
+
+
 def projection_uncertainty(camera: Camera, obs: Observations, rvecs, tvecs,
                            parameters: Sequence[str], distance_mm: float | None = None,
                            grid: tuple[int, int] = (16, 12)) -> dict:
