@@ -542,10 +542,13 @@ def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration
             write_json(trial.rig(m), with_outputs(entry, trial.rig(m)))
         results["warnings"] += _rig_warnings(results["rig"], source) + \
             baseline_outliers(results["rig"])
+    rig_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
     results["next_views"] = next_views(source, estimates, results, given)
     results["recapture"] = recapture(results)
     results["timing"] = {"detect_s": detect_s, "calibrate_s": calibrate_s,
-                         "diagnostics_s": diagnostics_s, "rig_s": time.perf_counter() - t0}
+                         "diagnostics_s": diagnostics_s, "rig_s": rig_s,
+                         "next_views_s": time.perf_counter() - t0}
     results["notes"] = notes.items
     write_json(paths.results, results)
     results = strict(results)

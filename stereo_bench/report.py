@@ -440,7 +440,8 @@ def capture_markdown(results: dict, title: str) -> str:
         lines += ["## Notes", ""] + [f"- {n}" for n in notes] + [""]
     t = results["timing"]
     lines += [f"Detection {t['detect_s']:.1f} s, calibration {t['calibrate_s']:.1f} s, "
-              f"diagnostics {t['diagnostics_s']:.1f} s, rig {t['rig_s']:.1f} s.", ""]
+              f"diagnostics {t['diagnostics_s']:.1f} s, rig {t['rig_s']:.1f} s, views to add "
+              f"{t['next_views_s']:.1f} s.", ""]
     return "\n".join(lines)
 
 
