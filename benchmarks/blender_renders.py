@@ -25,9 +25,10 @@ import cv2
 import numpy as np
 
 from detection_accuracy import CAMERAS, rig_with_board, row
-from stereo_bench.config import parse_rig
-from stereo_bench.dataset import write_dataset
-from stereo_bench.detect import METHODS, detect_dataset, detection_errors
+from stereo_bench.config.schema import parse_rig
+from stereo_bench.scene.dataset import write_dataset
+from stereo_bench.detect.boards import METHODS
+from stereo_bench.detect.dataset import detect_dataset, detection_errors
 from stereo_bench.render.blender import environment
 
 COLUMNS = ("camera", "pattern", "environment", "renderer", "frames found", "mean", "max",

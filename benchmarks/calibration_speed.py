@@ -36,9 +36,9 @@ from stereo_bench.calibrate import (Observations, available_methods, check_metho
                                     get_calibrator, parse_method)
 from stereo_bench.calibrate.lens_models import LENS_MODELS, free_coefficients  # noqa: E402
 from stereo_bench.calibrate.opencv_ref import calibrate_camera_flags  # noqa: E402
-from stereo_bench.config import load_rig  # noqa: E402
-from stereo_bench.metrics import projection_difference  # noqa: E402
-from stereo_bench.rig import Rig  # noqa: E402
+from stereo_bench.config.schema import load_rig  # noqa: E402
+from stereo_bench.evaluate.metrics import projection_difference  # noqa: E402
+from stereo_bench.scene.rig import Rig  # noqa: E402
 
 CONFIG = Path(__file__).resolve().parent.parent / "configs" / "paper" / "rectilinear_mono.yaml"
 # The distortion each base fits without a lens model, for its cv2.calibrateCamera peer.

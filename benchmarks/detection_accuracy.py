@@ -2,7 +2,7 @@
 
 For each of the four boards and each camera (rectilinear 4096 x 3072 and wide-angle 640 x 480, from
 configs/paper/*_mono.yaml with the board swapped in), render a clean dataset along the paper's
-conical-spring trajectory with fewer frames, detect it with every method of stereo_bench.detect
+conical-spring trajectory with fewer frames, detect it with every method of stereo_bench.detect.dataset
 and compare with the exact ground truth.  Prints one table: frame detection rate, share of the
 visible points detected, distance statistics over the detected points (px), signed mean error,
 orientation flips, and wall-clock detection time per frame (this machine, the OpenCV version
@@ -21,9 +21,10 @@ from pathlib import Path
 
 import cv2
 
-from stereo_bench.config import load_rig, parse_rig
-from stereo_bench.dataset import write_dataset
-from stereo_bench.detect import METHODS, detect_dataset, detection_errors
+from stereo_bench.config.schema import load_rig, parse_rig
+from stereo_bench.scene.dataset import write_dataset
+from stereo_bench.detect.boards import METHODS
+from stereo_bench.detect.dataset import detect_dataset, detection_errors
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "paper"
 CAMERAS = {"rectilinear": CONFIGS / "rectilinear_mono.yaml", "wide": CONFIGS / "wide_mono.yaml"}

@@ -5,7 +5,7 @@ from configs/paper/*_mono.yaml with the board swapped in, as benchmarks/detectio
 renders them), the same clean frames are detected, in turn frame by frame so that both see the
 same load on this machine, by
 
-* stereo_bench.detect (its default method): the search on a reduced copy, then every point
+* stereo_bench.detect.dataset (its default method): the search on a reduced copy, then every point
   measured at full resolution (the saddle fit, or the disc centroid);
 * OpenCV's own pipeline on the full image, as its documentation shows it: findChessboardCorners
   then cornerSubPix (11 x 11 window, 30 iterations or 0.001 px); findCirclesGrid with its default
@@ -31,8 +31,9 @@ import cv2
 import numpy as np
 
 from detection_accuracy import CAMERAS, rig_with_board, row
-from stereo_bench.dataset import Dataset, write_dataset
-from stereo_bench.detect import METHODS, CameraDetections, detect, detection_errors
+from stereo_bench.scene.dataset import Dataset, write_dataset
+from stereo_bench.detect.boards import METHODS, detect
+from stereo_bench.detect.dataset import CameraDetections, detection_errors
 
 COLUMNS = ("pattern", "camera", "detector", "frames found", "points found", "mean", "max",
            "flips", "s/frame")

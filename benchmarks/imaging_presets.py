@@ -24,12 +24,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from stereo_bench.config import load_rig, parse_rig
-from stereo_bench.dataset import frame_rng, render_settings
-from stereo_bench.detect import detect
-from stereo_bench.environments import PRESETS
+from stereo_bench.config.schema import load_rig, parse_rig
+from stereo_bench.scene.dataset import frame_rng, render_settings
+from stereo_bench.detect.boards import detect
+from stereo_bench.config.environments import PRESETS
 from stereo_bench.render import AnalyticRenderer
-from stereo_bench.rig import Rig
+from stereo_bench.scene.rig import Rig
 
 PAPER = Path(__file__).resolve().parent.parent / "configs" / "paper"
 CAMERAS = {"wide": "wide_mono.yaml", "rect": "rectilinear_mono.yaml"}

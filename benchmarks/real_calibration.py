@@ -5,7 +5,7 @@ OpenCV's pipeline (shared/real/README.md): findChessboardCorners with ADAPTIVE_T
 NORMALIZE_IMAGE, cornerSubPix 11x11 (30 iterations or 0.01 px, as OpenCV's stereo_calib
 sample), calibrateCamera with 5 coefficients, stereoCalibrate with FIX_INTRINSIC. Both
 sets of detections go through the same calibration and held-out stages
-(evaluate.calibrate_cameras, diagnostics.heldout), so a difference is the detector's.
+(stage.calibrate_cameras, diagnostics.heldout), so a difference is the detector's.
 
     python benchmarks/real_calibration.py [--methods zhang,bouguet,opencv,...] [--square-mm 1]
 """
@@ -20,14 +20,14 @@ import cv2
 import numpy as np
 
 from stereo_bench.calibrate import check_methods
-from stereo_bench.config import CalibrationConfig
-from stereo_bench.detect import CameraDetections, detect_dataset
-from stereo_bench.diagnostics import heldout
-from stereo_bench.evaluate import calibrate_cameras
-from stereo_bench.image_folders import ImageFolders
-from stereo_bench.patterns import Checkerboard
-from stereo_bench.pipeline import rig_of
-from stereo_bench.rundir import TrialPaths
+from stereo_bench.config.schema import CalibrationConfig
+from stereo_bench.detect.dataset import CameraDetections, detect_dataset
+from stereo_bench.calibrate.diagnostics import heldout
+from stereo_bench.evaluate.stage import calibrate_cameras
+from stereo_bench.scene.image_folders import ImageFolders
+from stereo_bench.core.patterns import Checkerboard
+from stereo_bench.run.pipeline import rig_of
+from stereo_bench.io.rundir import TrialPaths
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "real" / "opencv_stereo"
 

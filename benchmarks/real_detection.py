@@ -22,8 +22,8 @@ import cv2
 import numpy as np
 
 from stereo_bench.calibrate import Observations, get_calibrator
-from stereo_bench.detect import detect
-from stereo_bench.patterns import Checkerboard
+from stereo_bench.detect.boards import detect
+from stereo_bench.core.patterns import Checkerboard
 
 IMAGES = Path(__file__).resolve().parents[1].parent / "shared" / "real" / "opencv_stereo"
 PATTERN = Checkerboard(squares_x=10, squares_y=7, square_mm=1.0, margin_mm=0.0)

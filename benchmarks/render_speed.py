@@ -29,11 +29,11 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from stereo_bench.config import load_rig, parse_rig  # noqa: E402
-from stereo_bench.dataset import render_settings  # noqa: E402
-from stereo_bench.environments import PRESETS  # noqa: E402
+from stereo_bench.config.schema import load_rig, parse_rig  # noqa: E402
+from stereo_bench.scene.dataset import render_settings  # noqa: E402
+from stereo_bench.config.environments import PRESETS  # noqa: E402
 from stereo_bench.render import AnalyticRenderer, PixelRays  # noqa: E402
-from stereo_bench.rig import Rig  # noqa: E402
+from stereo_bench.scene.rig import Rig  # noqa: E402
 
 PAPER = Path(__file__).resolve().parent.parent / "configs" / "paper"
 RIGS = {"rectilinear": ("rectilinear_mono.yaml", 0.3), "wide": ("wide_mono.yaml", 0.010)}

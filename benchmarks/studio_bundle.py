@@ -9,9 +9,9 @@ through the volume for ``--frames`` frames of a calibration session (trajectory.
 the board walks, tilts and turns so that its front faces each camera in turn); a camera sees a
 frame when every point is visible in the ground truth (front towards it, inside its image).
 Exact projections plus Gaussian noise of ``--sigma`` px. Each camera's cam_from_board comes from
-its own view (stereo.planar_pose), as a calibration starts it; ``stereo.calibrate_rig`` and
-``colmap_ref.colmap_rig_bundle`` then start from the same initial rig (``stereo.rig_start``)
-and fixed true intrinsics, and minimize the same cost. ``multiview_ref.opencv_multiview``
+its own view (pose.planar_pose), as a calibration starts it; ``bundle.calibrate_rig`` and
+``colmap_ref.colmap_rig_bundle`` then start from the same initial rig (``bundle.rig_start``)
+and fixed true intrinsics, and minimize the same cost. ``opencv_ref.opencv_multiview``
 (OpenCV >= 5, else its column reads n/a) takes the same observations and fixed intrinsics, but
 starts from its own initialization and minimizes its own robustly weighted cost (its notes).
 
@@ -40,9 +40,10 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy  # noqa: E402
 
-from stereo_bench.config import parse_rig  # noqa: E402
-from stereo_bench.rig import Rig  # noqa: E402
-from stereo_bench.stereo import calibrate_rig, planar_pose, rig_errors, rig_start  # noqa: E402
+from stereo_bench.config.schema import parse_rig  # noqa: E402
+from stereo_bench.scene.rig import Rig  # noqa: E402
+from stereo_bench.multiview.bundle import calibrate_rig, rig_errors, rig_start  # noqa: E402
+from stereo_bench.calibrate.pose import planar_pose  # noqa: E402
 
 
 def studio(C: int, frames: int, seed: int, rng) -> Rig:
@@ -83,13 +84,13 @@ def main() -> None:
     try:
         import pycolmap
 
-        from stereo_bench.colmap_ref import colmap_rig_bundle
+        from stereo_bench.multiview.colmap_ref import colmap_rig_bundle
     except ImportError as e:
         raise SystemExit(f"{e} (pip install pycolmap)")
     from pycolmap._core import __ceres_version__ as ceres_version
     opencv_multiview, opencv_missing = None, f"OpenCV {cv2.__version__} has no calibrateMultiview"
     if hasattr(cv2, "calibrateMultiviewExtended"):  # OpenCV >= 5
-        from stereo_bench.multiview_ref import opencv_multiview
+        from stereo_bench.multiview.opencv_ref import opencv_multiview
 
     rng = np.random.default_rng(args.seed)
     rig = studio(args.cameras, args.frames, args.seed, rng)

@@ -21,9 +21,9 @@ import cv2
 import numpy as np
 
 import stereo_bench
-from stereo_bench.config import load_rig
-from stereo_bench.pipeline import run_trial
-from stereo_bench.rundir import RunPaths
+from stereo_bench.config.schema import load_rig
+from stereo_bench.run.pipeline import run_trial
+from stereo_bench.io.rundir import RunPaths
 
 DEFAULT_RIG = Path(__file__).parent.parent / "configs" / "studios" / "h36m_rectangle.yaml"
 SETTINGS = [

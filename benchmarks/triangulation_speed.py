@@ -39,9 +39,10 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from stereo_bench.camera import Camera, look_at_rotation, matrix_to_rodrigues  # noqa: E402
+from stereo_bench.core.camera import Camera  # noqa: E402
+from stereo_bench.core.poses import look_at_rotation, matrix_to_rodrigues  # noqa: E402
 from stereo_bench.render import PixelRays  # noqa: E402
-from stereo_bench.triangulate import (  # noqa: E402
+from stereo_bench.multiview.triangulate import (  # noqa: E402
     refine_points, triangulate_dlt, triangulate_midpoint)
 
 RECT = Camera("rect", 4096, 3072, 3000, 3000, 2048, 1536, 0, [0.05, 0.02, 0.001, 0, 0, 0, 0, 0])

@@ -23,20 +23,21 @@ import numpy as np
 from rich.console import Console
 
 from stereo_bench.calibrate import available_methods, parse_method
-from stereo_bench.config import ConfigError, load_rig
+from stereo_bench.config.bounds import ConfigError
+from stereo_bench.config.schema import load_rig
 from stereo_bench.cli import say
-from stereo_bench.pipeline import Trial, load_run
+from stereo_bench.run.pipeline import Trial, load_run
 from stereo_bench.render.blender.client import WorkerError
 from stereo_bench.render.blender.environment import WorkerUnavailable
-from stereo_bench.html_report import provenance, write_html
-from stereo_bench.rundir import RunPaths, is_safe_name, locked, write_json, write_text
+from stereo_bench.report.html import provenance, write_html
+from stereo_bench.io.rundir import RunPaths, locked
+from stereo_bench.core.files import is_safe_name, write_json, write_text
 
 from .body import NUM_JOINTS, load_body_model
 from .fit import fit_smpl
 from .metrics import excess_mpjpe, pose_metrics
 from .motion import JOINT_NAMES, MOTIONS
-from .observe import (DetectorModel, observe, read_openpose, scene_occlusion,
-                      write_openpose)
+from .observe import DetectorModel, observe, read_openpose, scene_occlusion, write_openpose
 from .reconstruct import triangulate_joints
 from .report import (COST, FLOOR, STAGES, aggregate, headline_stage, markdown, plot_mpjpe,
                      plot_skeleton)
@@ -132,8 +133,9 @@ def build_parser() -> argparse.ArgumentParser:
 def _capture_trial(folder) -> tuple[str, str, list[Trial]]:
     """A calibrate-images output as one trial: the reference rig (opencv's, else the first
     method's that gave one) as the true cameras, the other methods' rigs as estimates."""
-    from stereo_bench.exchange import _rig_file_cameras
-    from stereo_bench.rundir import CapturePaths, read_json
+    from stereo_bench.run.exchange import _rig_file_cameras
+    from stereo_bench.io.rundir import CapturePaths
+    from stereo_bench.core.files import read_json
 
     paths = CapturePaths(folder)
     results = read_json(paths.results) if paths.results.is_file() else None
@@ -316,7 +318,7 @@ def _imported(args, truth) -> dict:
     if not args.calibration:
         return {}
     from stereo_bench import io
-    from stereo_bench.exchange import as_rig_of
+    from stereo_bench.run.exchange import as_rig_of
 
     cams, how = as_rig_of(io.load(args.calibration, args.calibration_format),
                           [c.name for c in truth], args.calibration)

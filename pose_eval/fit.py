@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from smplx.lbs import batch_rigid_transform, batch_rodrigues
 
-from stereo_bench.camera import matrix_to_rodrigues
+from stereo_bench.core.poses import matrix_to_rodrigues
 
 from .body import MM_PER_M, NUM_JOINTS, load_body_model
 from .metrics import similarity_align

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stereo_bench.camera import matrix_to_rodrigues, rodrigues_to_matrix
+from stereo_bench.core.poses import matrix_to_rodrigues, rodrigues_to_matrix
 
 JOINT_NAMES = (
     "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2",

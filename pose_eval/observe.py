@@ -44,8 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
-from stereo_bench.camera import Camera
-from stereo_bench.rundir import UnreadableFileError, read_json, write_json
+from stereo_bench.core.camera import Camera
+from stereo_bench.core.files import UnreadableFileError, read_json, write_json
 
 from .body import NUM_JOINTS
 from .scene import Scene, in_view

@@ -29,11 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
-from stereo_bench.camera import Camera
+from stereo_bench.core.camera import Camera
 from stereo_bench.render import PixelRays
 from stereo_bench.render.blender.client import Worker
 from stereo_bench.render.blender.lens import PinholeView
-from stereo_bench.rundir import write_json, write_npy, write_png
+from stereo_bench.core.files import write_json, write_npy, write_png
 
 from .body import NUM_JOINTS
 from .motion import JOINT

@@ -2,7 +2,7 @@
 
 The keypoints were seen through the true cameras; triangulating them through an estimate turns
 every error of that estimate (intrinsics, distortion, relative pose) into joint error, which is
-what ``pose-eval`` measures. Triangulation is the shared module's (stereo_bench.triangulate):
+what ``pose-eval`` measures. Triangulation is the shared module's (stereo_bench.multiview.triangulate):
 the weighted linear DLT followed by the per-point maximum-likelihood refinement of the
 reprojection error, with each view weighted by its keypoint's confidence (a view's residual is
 scaled by its weight, so an occluded joint with confidence 0.3 and 3x the noise counts as its
@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from stereo_bench.camera import Camera
-from stereo_bench.triangulate import refine_points, triangulate_dlt, triangulate_robust
+from stereo_bench.core.camera import Camera
+from stereo_bench.multiview.triangulate import refine_points, triangulate_dlt, triangulate_robust
 
 from .observe import Keypoints
 

@@ -17,7 +17,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402 (after choosing the headless backend)
 import numpy as np  # noqa: E402
 
-from stereo_bench.report import summarize  # noqa: E402
+from stereo_bench.report.markdown import summarize  # noqa: E402
 
 from .motion import JOINT_NAMES, PARENTS  # noqa: E402
 

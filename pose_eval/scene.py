@@ -35,7 +35,7 @@ Centring the swept volume rather than the root alone keeps the whole body in vie
 distance (a root at mid-height would push the head out of frame for a squat).
 
 Rigs. A ``stereo-bench`` run directory holds, per trial seed, the true cameras and one
-estimated rig per calibration method (read by ``stereo_bench.pipeline.load_run``). An estimated
+estimated rig per calibration method (read by ``stereo_bench.run.pipeline.load_run``). An estimated
 rig is expressed in its reference camera's frame (cam_from_world = cam_from_cam0). To
 triangulate in the true world, :func:`in_true_world` puts the estimate's camera 0 at the TRUE
 pose of camera 0: the reference camera's own pose is not something a calibration method
@@ -53,10 +53,12 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from stereo_bench.camera import Camera, compose, matrix_to_rodrigues, radial_fold_radius
-from stereo_bench.config import load_rig
-from stereo_bench.rig import ground_axes, volume_centre, world_up
-from stereo_bench.rundir import RunPaths
+from stereo_bench.core.camera import Camera
+from stereo_bench.core.poses import compose, matrix_to_rodrigues
+from stereo_bench.core.distortion import radial_fold_radius
+from stereo_bench.config.schema import load_rig
+from stereo_bench.scene.rig import ground_axes, volume_centre, world_up
+from stereo_bench.io.rundir import RunPaths
 
 from .body import forward, load_body_model, rest_skeleton, to_mm
 from .motion import make_motion

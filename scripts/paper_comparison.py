@@ -11,7 +11,7 @@ paper_realistic_mono.yaml and paper_realistic_pairs.yaml). Every environment oth
 tables (reference/synthcal-paper.tex) for side-by-side reading only; every number in our
 columns is read from the sweeps' results. The claims are tested on paired per-seed differences
 (each seed renders the same trajectory and noise for every method and pattern) with 95 %
-Student-t intervals (stereo_bench.sweep_stats): a claim is confirmed where every interval it
+Student-t intervals (stereo_bench.run.sweep_stats): a claim is confirmed where every interval it
 rests on excludes zero in its favour, refuted where one excludes zero against it.
 """
 
@@ -22,7 +22,7 @@ import json
 import math
 from pathlib import Path
 
-from stereo_bench.sweep_stats import METRICS, t_interval, value
+from stereo_bench.run.sweep_stats import METRICS, t_interval, value
 
 METHODS = {"zhang": "Zhang", "tsai": "Tsai", "bouguet": "Bouguet"}
 PATTERNS = {"checkerboard": "9x12 Ch", "symmetric_circles": "10x10 Sc",

@@ -10,11 +10,13 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.text import Text
 
-from .config import ConfigError, load_rig, parse_rig
-from .html_report import write_run_html
-from .rundir import locked, prepare_output
+from .config.bounds import ConfigError
+from .config.schema import load_rig, parse_rig
+from .report.html import write_run_html
+from .io.rundir import locked, prepare_output
 from .render.blender.client import WorkerError
 from .render.blender.environment import WorkerUnavailable
+from .run.capture_options import board_from_args, camera_folders
 
 console = Console(stderr=True)
 MAX_TRIALS = 1000
@@ -39,7 +41,7 @@ def _warn(lines) -> None:
 
 
 def cmd_render(args) -> int:
-    from .dataset import write_dataset
+    from .scene.dataset import write_dataset
 
     cfg = _renderable(load_rig(args.rig))
     out = Path(args.out or Path("out") / cfg.name)
@@ -64,7 +66,7 @@ def _renderable(cfg):
 
 def _named(source, fn, *args):
     """``fn(*args)``, with a refusal of the rig (UnusableRigError) naming ``source``."""
-    from .dataset import UnusableRigError
+    from .scene.dataset import UnusableRigError
 
     try:
         return fn(*args)
@@ -85,7 +87,7 @@ def _methods(text: str) -> list[str]:
 
 
 def _report(trials: list[dict], out: Path, title: str) -> dict:
-    from .report import markdown, write_report
+    from .report.markdown import markdown, write_report
 
     agg = write_report(out, trials, title)
     console.print(markdown(agg, title), markup=False, soft_wrap=True, highlight=False)
@@ -99,7 +101,7 @@ def _nothing_calibrated(trials: list[dict]) -> bool:
 
 
 def _run(cfg, out: Path, args, source, first_dataset=None, with_rig=True) -> list[dict]:
-    from .pipeline import run
+    from .run.pipeline import run
 
     methods = _methods(args.methods)
     if not 1 <= args.trials <= MAX_TRIALS or not 1 <= args.workers <= MAX_WORKERS:
@@ -122,8 +124,8 @@ def _finish(trials: list[dict], written: str) -> int:
 
 
 def cmd_calibrate(args) -> int:
-    from .dataset import Dataset
-    from .report import run_title
+    from .scene.dataset import Dataset
+    from .report.markdown import run_title
 
     base = Dataset.load(args.dataset)
     _warn(base.warnings)
@@ -141,8 +143,8 @@ def cmd_calibrate(args) -> int:
 
 
 def cmd_run(args) -> int:
-    from .plots import plot_run
-    from .report import run_title
+    from .report.plots import plot_run
+    from .report.markdown import run_title
 
     cfg = _renderable(load_rig(args.rig))
     out = Path(args.out or Path("out") / cfg.name)
@@ -160,7 +162,8 @@ SWEEP_WORKERS = 2
 
 
 def cmd_sweep(args) -> int:
-    from .sweep import load_grid, run_sweep
+    from .run.grid import load_grid
+    from .run.sweep import run_sweep
 
     if args.scheduler is not None and args.workers is not None:
         raise ValueError("--workers applies to the embedded cluster; with --scheduler the "
@@ -188,116 +191,20 @@ def cmd_sweep(args) -> int:
     return 0
 
 
-# The board as users describe it, per option: the kinds it applies to and the rig file's field.
-_BOARD_OPTIONS = {
-    "inner_corners": ("checkerboard",),
-    "squares": ("checkerboard", "charuco"),
-    "circles": ("symmetric_circles", "asymmetric_circles"),
-    "square_mm": ("checkerboard", "charuco"),
-    "marker_mm": ("charuco",),
-    "dictionary": ("charuco",),
-    "legacy": ("charuco",),
-    "spacing_mm": ("symmetric_circles", "asymmetric_circles"),
-    "diameter_mm": ("symmetric_circles", "asymmetric_circles"),
-}
-
-
-def _grid_size(option: str, text: str) -> tuple[int, int]:
-    try:
-        cols, rows = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ValueError(f"--{option.replace('_', '-')}: expected COLUMNSxROWS such as 9x6, got "
-                         f"{text!r}") from None
-    return cols, rows
-
-
-def board_from_args(args):
-    """The board of ``calibrate-images`` from its options (or --board-file), validated by the
-    rig file's own schema (config.PatternConfig), so both name the same fields; and whether
-    the user gave a circle grid's disc diameter."""
-    from pydantic import ValidationError
-
-    from .config import PatternConfig, describe, load_yaml
-
-    if args.board_file:
-        data = load_yaml(args.board_file, "board file")
-        data = data.get("pattern", data) if isinstance(data, dict) else data
-        source = args.board_file
-    else:
-        if not args.board:
-            raise ValueError("--board: expected the board's kind (checkerboard, charuco, "
-                             "symmetric_circles or asymmetric_circles) or --board-file")
-        kind, data = args.board, {"kind": args.board}
-        for option, kinds in _BOARD_OPTIONS.items():
-            value = getattr(args, option)
-            if value is None:
-                continue
-            if kind not in kinds:
-                raise ValueError(f"--{option.replace('_', '-')}: not an option of a {kind} "
-                                 f"(it applies to {', '.join(kinds)})")
-            if option == "inner_corners":
-                data["inner_corners"] = list(_grid_size(option, value))
-            elif option == "squares":
-                data["squares_x"], data["squares_y"] = _grid_size(option, value)
-            elif option == "circles":
-                data["cols"], data["rows"] = _grid_size(option, value)
-            elif option == "spacing_mm" and kind == "asymmetric_circles":
-                # OpenCV's squareSize of this grid: the row pitch, half the pitch in a row.
-                data["diagonal_spacing_mm"] = value * 2 ** 0.5
-            else:
-                data[option] = value
-        if args.inverted:
-            data["inverted"] = True
-        source = "the --board options"
-    try:
-        board = PatternConfig.model_validate(data).build()
-    except ValidationError as e:  # in words, each field with what was expected
-        raise ValueError(describe(e, source, "board")) from None
-    except Exception as e:  # the board's own ValueError
-        raise ValueError(f"{source}: {e}") from None
-    return board, isinstance(data, dict) and "diameter_mm" in data
-
-
-def _camera_folders(specs: list[str]) -> dict[str, str]:
-    """NAME=FOLDER (or glob, or video); a bare folder is named after itself, a bare video after
-    its stem, and a bare folder of videos (and no images) is one camera per video."""
-    from .image_folders import IMAGE_SUFFIXES, VIDEO_SUFFIXES
-
-    pairs = []
-    for spec in specs:
-        name, sep, where = spec.partition("=")
-        if sep:
-            pairs.append((name, where))
-            continue
-        path = Path(spec.rstrip("/"))
-        inside = sorted(path.iterdir()) if path.is_dir() else []
-        videos = [p for p in inside if p.suffix.lower() in VIDEO_SUFFIXES]
-        if videos and not any(p.suffix.lower() in IMAGE_SUFFIXES for p in inside):
-            pairs += [(p.stem, str(p)) for p in videos]
-        else:
-            pairs.append((path.stem if path.suffix.lower() in VIDEO_SUFFIXES else path.name,
-                          spec))
-    cameras = {}
-    for name, where in pairs:
-        if name in cameras:
-            raise ValueError(f"camera {name!r} given twice; name them: NAME=FOLDER")
-        cameras[name] = where
-    return cameras
-
-
 def cmd_calibrate_images(args) -> int:
-    from .capture import calibrate_capture, with_measured_diameter
-    from .config import CalibrationConfig
-    from .image_folders import ImageFolders
+    from .run.capture import calibrate_capture, with_measured_diameter
+    from .config.schema import CalibrationConfig
+    from .scene.image_folders import ImageFolders
     import yaml
 
-    from .html_report import provenance, write_html
-    from .report import capture_markdown
-    from .rundir import CapturePaths, write_text
+    from .report.html import provenance, write_html
+    from .report.markdown import capture_markdown
+    from .io.rundir import CapturePaths
+    from .core.files import write_text
 
     methods = _methods(args.methods)
     pattern, diameter_given = board_from_args(args)
-    source = ImageFolders.open(_camera_folders(args.cameras), pattern, args.frame_stride,
+    source = ImageFolders.open(camera_folders(args.cameras), pattern, args.frame_stride,
                                args.max_frames, args.timestamps)
     measured = []
     if hasattr(pattern, "diameter_mm") and not diameter_given:
@@ -308,7 +215,7 @@ def cmd_calibrate_images(args) -> int:
     given = {}
     if args.intrinsics:
         from . import io
-        from .capture import given_intrinsics
+        from .run.capture import given_intrinsics
 
         given = given_intrinsics(io.load(args.intrinsics, args.intrinsics_format), source,
                                  args.intrinsics)
@@ -356,8 +263,8 @@ def cmd_calibrate_images(args) -> int:
 
 
 def cmd_export(args) -> int:
-    from .exchange import estimates_of, write_estimates
-    from .rundir import CapturePaths
+    from .run.exchange import estimates_of, write_estimates
+    from .io.rundir import CapturePaths
 
     # The source is read before the output folder is made: a wrong path creates nothing.
     estimates, where = estimates_of(args.source, args.method, args.seed)
@@ -377,10 +284,11 @@ def cmd_export(args) -> int:
 
 
 def cmd_score(args) -> int:
-    from .dataset import Dataset
-    from .exchange import score_calibration
-    from .report import imported_markdown
-    from .rundir import RunPaths, write_json, write_text
+    from .scene.dataset import Dataset
+    from .run.exchange import score_calibration
+    from .report.markdown import imported_markdown
+    from .io.rundir import RunPaths
+    from .core.files import write_json, write_text
 
     ds = Dataset.load(args.dataset)
     out = Path(args.out or Path(args.dataset) / "scored")
@@ -440,7 +348,7 @@ def build_parser() -> argparse.ArgumentParser:
     _trial_options(u)
     u.set_defaults(func=cmd_run)
 
-    from .image_folders import MAX_VIDEO_FRAMES
+    from .scene.image_folders import MAX_VIDEO_FRAMES
     from .io import FORMATS
 
     i = sub.add_parser("calibrate-images",

@@ -4,8 +4,9 @@ test_imaging); the ``rays`` fixture that caches each camera's PixelRays is in co
 import cv2
 import numpy as np
 
-from stereo_bench.camera import Camera, rodrigues_to_matrix
-from stereo_bench.patterns import Checkerboard
+from stereo_bench.core.camera import Camera
+from stereo_bench.core.poses import rodrigues_to_matrix
+from stereo_bench.core.patterns import Checkerboard
 
 WIDE = Camera("wide", 640, 480, 600, 450, 320, 240, 0,
               np.array([0.5, 0.1, 0.03, 0, 0, 0, 0, 0]))

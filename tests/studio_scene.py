@@ -11,10 +11,11 @@ about half the frames, most frames two or three cameras.
 
 import numpy as np
 
-from stereo_bench.camera import matrix_to_rodrigues, rodrigues_to_matrix
-from stereo_bench.config import parse_rig
-from stereo_bench.rig import Rig
-from stereo_bench.stereo import cam_from_cam0, planar_pose
+from stereo_bench.core.poses import matrix_to_rodrigues, rodrigues_to_matrix
+from stereo_bench.config.schema import parse_rig
+from stereo_bench.scene.rig import Rig
+from stereo_bench.core.poses import cam_from_cam0
+from stereo_bench.calibrate.pose import planar_pose
 
 FRAMES = 60
 LENSES = [
@@ -71,7 +72,7 @@ def intrinsics_only(cams):
 
 
 def board_poses(cams, obj, img):
-    """Each camera's own cam_from_board from its view (stereo.planar_pose), as a calibration
+    """Each camera's own cam_from_board from its view (pose.planar_pose), as a calibration
     would start it: rvecs, tvecs (C,F,3), NaN where the camera did not see the frame, and
     found (C,F) bool."""
     found = np.all(np.isfinite(img), axis=(-1, -2))

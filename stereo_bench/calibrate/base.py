@@ -13,7 +13,7 @@ from typing import Protocol
 
 import numpy as np
 
-from ..camera import Camera
+from ..core.camera import Camera
 
 MIN_POINTS_PER_VIEW = 4  # a plane-to-image homography needs four correspondences
 

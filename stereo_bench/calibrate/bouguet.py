@@ -33,7 +33,8 @@ import time
 
 import numpy as np
 
-from ..camera import matrix_to_rodrigues, undistort_normalized
+from ..core.poses import matrix_to_rodrigues
+from ..core.distortion import undistort_normalized
 from .base import CalibrationResult, Observations
 from .homography import fit_homographies
 from .lens_models import LENS_MODELS, free_coefficients, method_name

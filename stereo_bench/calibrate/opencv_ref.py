@@ -17,7 +17,7 @@ import time
 import cv2
 import numpy as np
 
-from ..camera import Camera
+from ..core.camera import Camera
 from .base import CalibrationResult, Observations
 from .lens_models import LENS_MODELS, free_coefficients, method_name
 from .refine import OpenCVModel, free_mask, intrinsic_information, rank_info

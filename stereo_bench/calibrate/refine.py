@@ -36,8 +36,8 @@ from typing import Protocol
 
 import numpy as np
 
-from ..camera import (DIST_NAMES, INTRINSIC_NAMES, Camera, matrix_to_rodrigues,
-                      project_cam_with_jacobians, rodrigues_to_matrix, rotate_jacobian)
+from ..core.camera import DIST_NAMES, INTRINSIC_NAMES, Camera, project_cam_with_jacobians
+from ..core.poses import matrix_to_rodrigues, rodrigues_to_matrix, rotate_jacobian
 
 
 EPS = np.finfo(np.float64).eps

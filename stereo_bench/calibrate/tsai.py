@@ -51,7 +51,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import Camera, matrix_to_rodrigues, nearest_rotation
+from ..core.camera import Camera
+from ..core.poses import matrix_to_rodrigues, nearest_rotation
 from .base import CalibrationResult, Observations
 from .refine import refine
 

@@ -24,8 +24,8 @@ import time
 
 import numpy as np
 
-from ..camera import (Camera, matrix_to_rodrigues, nearest_rotation, project_points,
-                      rodrigues_to_matrix)
+from ..core.camera import Camera, project_points
+from ..core.poses import matrix_to_rodrigues, nearest_rotation, rodrigues_to_matrix
 from .base import CalibrationResult, Observations
 from .homography import fit_homographies
 from .lens_models import LENS_MODELS, free_coefficients, method_name

@@ -27,7 +27,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Sequence
 
-from ..camera import Camera
+from ..core.camera import Camera
 from . import anipose, caliscope, colmap, easymocap, kalibr, mrcal, opencv_yaml
 
 FORMATS = {

@@ -30,9 +30,9 @@ try:
 except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
-from ..camera import Camera
-from ..config import MAX_FILE_BYTES
-from ..rundir import read_text, write_text
+from ..core.camera import Camera
+from ..config.bounds import MAX_FILE_BYTES
+from ..core.files import read_text, write_text
 from . import common
 
 FORMAT = "anipose calibration.toml"

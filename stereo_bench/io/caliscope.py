@@ -34,9 +34,10 @@ try:
 except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
-from ..camera import Camera, matrix_to_rodrigues
-from ..config import MAX_FILE_BYTES
-from ..rundir import read_text, write_text
+from ..core.camera import Camera
+from ..core.poses import matrix_to_rodrigues
+from ..config.bounds import MAX_FILE_BYTES
+from ..core.files import read_text, write_text
 from . import common
 from .anipose import toml_value
 

@@ -29,9 +29,9 @@ from typing import Sequence
 
 import numpy as np
 
-from ..camera import DIST_NAMES, Camera, matrix_to_rodrigues
-from ..colmap_ref import PIXEL_SHIFT, _from_rigid3d, colmap_model
-from ..rundir import read_text, write_text
+from ..core.camera import DIST_NAMES, Camera
+from ..core.poses import matrix_to_rodrigues
+from ..core.files import read_text, write_text
 from . import common
 
 FORMAT = "COLMAP"
@@ -48,6 +48,44 @@ MODELS = {
     "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
     "FULL_OPENCV": ("fx", "fy", "cx", "cy") + DIST_NAMES,
 }
+
+
+PIXEL_SHIFT = 0.5  # COLMAP pixel coordinate = OpenCV pixel coordinate + PIXEL_SHIFT
+
+
+def opencv_to_colmap_pixels(uv: np.ndarray) -> np.ndarray:
+    """Pixels (..., 2) in OpenCV's convention -> COLMAP's (+PIXEL_SHIFT on u and v)."""
+    return np.asarray(uv, dtype=np.float64) + PIXEL_SHIFT
+
+
+def colmap_model(camera: Camera) -> tuple[str, np.ndarray]:
+    """(COLMAP model name, params) of a project Camera, principal point in COLMAP's convention.
+
+    OPENCV when k3..k6 are zero, else FULL_OPENCV. Raises ValueError for skew != 0.
+    """
+    if camera.skew != 0:
+        raise ValueError(f"camera {camera.name!r}: skew {camera.skew!r} is not 0; COLMAP's "
+                         f"OPENCV and FULL_OPENCV models have no skew")
+    pinhole = [camera.fx, camera.fy, camera.cx + PIXEL_SHIFT, camera.cy + PIXEL_SHIFT]
+    d = camera.dist
+    if not np.any(d[4:]):
+        return "OPENCV", np.array(pinhole + d[:4].tolist())
+    return "FULL_OPENCV", np.array(pinhole + d.tolist())
+
+
+def from_colmap_camera(colmap_camera, camera: Camera) -> Camera:
+    """The project Camera ``camera`` with the intrinsics of a pycolmap.Camera (pose unchanged)."""
+    p = np.asarray(colmap_camera.params, dtype=np.float64)
+    dist = np.zeros(8)
+    dist[: len(p) - 4] = p[4:]
+    return camera.with_params(fx=float(p[0]), fy=float(p[1]), cx=float(p[2]) - PIXEL_SHIFT,
+                              cy=float(p[3]) - PIXEL_SHIFT, dist=dist)
+
+
+def from_rigid3d(pose) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) of a pycolmap Rigid3d."""
+    return (np.asarray(pose.rotation.matrix(), dtype=np.float64),
+            np.asarray(pose.translation, dtype=np.float64).reshape(3))
 
 
 def quaternion_from_rodrigues(rvec: np.ndarray) -> np.ndarray:
@@ -223,7 +261,7 @@ def from_reconstruction(reconstruction) -> list[Camera]:
             for cid, c in reconstruction.cameras.items()}
     images = []
     for iid, im in reconstruction.images.items():
-        R, t = _from_rigid3d(im.cam_from_world())
+        R, t = from_rigid3d(im.cam_from_world())
         images.append((int(iid), matrix_to_rodrigues(common.rotation(R, f"image {iid}")), t,
                        int(im.camera_id), im.name, f"reconstruction image {iid}"))
     return _snapshot(cams, images, "pycolmap.Reconstruction")

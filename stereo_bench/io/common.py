@@ -15,10 +15,11 @@ from typing import Sequence
 
 import numpy as np
 
-from ..camera import DIST_NAMES, Camera, nearest_rotation
-from ..config import (MAX_DISTANCE_MM, MAX_DISTORTION, MAX_FOCAL_PX, MAX_IMAGE_PIXELS,
-                      MAX_IMAGE_SIDE, MAX_PIXEL_ASPECT, MAX_SKEW_PX)
-from ..stereo import cam_from_cam0 as _cam_from_cam0
+from ..core.camera import DIST_NAMES, Camera
+from ..core.poses import nearest_rotation
+from ..config.bounds import (MAX_DISTANCE_MM, MAX_DISTORTION, MAX_FOCAL_PX, MAX_IMAGE_PIXELS,
+                             MAX_IMAGE_SIDE, MAX_PIXEL_ASPECT, MAX_SKEW_PX)
+from ..core.poses import cam_from_cam0 as _cam_from_cam0
 
 MM_PER_M = 1000.0
 

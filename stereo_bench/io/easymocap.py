@@ -23,8 +23,9 @@ from pathlib import Path
 from typing import Sequence
 
 
-from ..camera import Camera, matrix_to_rodrigues
-from ..rundir import write_text
+from ..core.camera import Camera
+from ..core.poses import matrix_to_rodrigues
+from ..core.files import write_text
 from . import common
 from .opencv_yaml import node_distortion, node_int, node_matrix, open_storage
 
@@ -108,4 +109,3 @@ def read(path) -> list[Camera]:
     finally:
         intri.release()
         extri.release()
-

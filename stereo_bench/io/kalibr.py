@@ -26,9 +26,10 @@ from typing import Sequence
 
 import numpy as np
 import yaml
-from ..camera import Camera, compose, invert, matrix_to_rodrigues
-from ..config import load_yaml
-from ..rundir import write_text
+from ..core.camera import Camera
+from ..core.poses import compose, invert, matrix_to_rodrigues
+from ..config.yaml_reader import load_yaml
+from ..core.files import write_text
 from . import common
 
 FORMAT = "Kalibr camchain"

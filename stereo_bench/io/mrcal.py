@@ -30,9 +30,9 @@ from typing import Sequence
 
 import numpy as np
 
-from ..camera import Camera
-from ..config import MAX_FILE_BYTES
-from ..rundir import UnreadableFileError, read_text, write_text
+from ..core.camera import Camera
+from ..config.bounds import MAX_FILE_BYTES
+from ..core.files import UnreadableFileError, read_text, write_text
 from . import common
 
 FORMAT = "mrcal .cameramodel"

@@ -34,8 +34,9 @@ from typing import Sequence
 
 import numpy as np
 
-from ..camera import Camera, matrix_to_rodrigues, skew_matrix
-from ..rundir import write_text
+from ..core.camera import Camera
+from ..core.poses import matrix_to_rodrigues, skew_matrix
+from ..core.files import write_text
 from . import common
 
 FORMAT = "OpenCV YAML"

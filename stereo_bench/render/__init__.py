@@ -8,6 +8,7 @@ shares the same ground truth (the rig file's ``renderer.kind`` chooses, dataset.
 builds them).
 """
 
-from .analytic import AnalyticRenderer, PixelRays, RenderSettings, gaussian_noise
+from .analytic import AnalyticRenderer, PixelRays, RenderSettings
+from .texels import gaussian_noise
 
 __all__ = ["AnalyticRenderer", "PixelRays", "RenderSettings", "gaussian_noise"]

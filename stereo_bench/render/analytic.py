@@ -20,7 +20,7 @@ a factor of 1.5-1.7 in the median frame and up to 2.5, so there the texel spans 
 samples (1.25 px at s = 2).
 
 The sample positions come from the exact per-pixel rays by bilinear interpolation of the
-per-frame texel coordinates where that map is smooth (error < 1e-3 px, tests/test_render.py),
+per-frame texel coordinates where that map is smooth (error < 1e-3 px, tests/render/test_render.py),
 else of the rays themselves with the homography applied per sample (30-50 % slower). Exact rays
 for every sample would cost s^2 times the memory and precomputation (1.6 GB and ~5 min at s = 4
 on a 4096 x 3072 camera).
@@ -44,18 +44,20 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.special import ndtri
 
-from ..board_shape import BoardShape
-from ..camera import Camera, distort_with_jacobians, radial_fold_radius, rodrigues_to_matrix
+from ..core.board_shape import BoardShape
+from ..core.camera import Camera
+from ..core.distortion import distort_with_jacobians, radial_fold_radius
+from ..core.poses import rodrigues_to_matrix
 from .imaging import (MAX_MOTION_SUBFRAMES, Light, Motion, Optics, Sensor, blinn_phong, defocus,
                       expose, vignetting_gain)
+from .texels import (OUTSIDE, cells_touching, gaussian_noise, inverse_2x2, linear_weights,
+                     plane_texels, sample_texels)
 
 _PAD = 2           # background texels around every texture (also absorbs perspectiveTransform's
                    # (0, 0) answer for rays parallel to the plane)
 _CELL = 32         # px, coarse grid used to find the board's image region and footprint
 _OUTLINE_POINTS = 1024  # samples per outline edge when locating the board's image region
-_OUTSIDE = -1.0e4  # texel coordinate far outside every texture
 _MAX_DEPTH_SLOPE = 2e-3  # per px: interpolating texel coordinates is accurate to 5e-4 px below
 _LEVELS_PER_OCTAVE = 4
 _LEVELS_KEPT = 4   # texture levels cached per renderer (<= 4 x 32 MiB at the default cap)
@@ -150,23 +152,6 @@ class PixelRays:
         self.node_xy = camera.unproject(np.stack(np.meshgrid(nodes_u, nodes_v), -1).astype(float))
 
 
-def gaussian_noise(rng: np.random.Generator, shape: tuple[int, int]) -> np.ndarray:
-    """Standard normal noise (shape) float32 from ``rng``, 3x faster than ``standard_normal``.
-
-    Inverse-CDF sampling of 16-bit uniforms: the 65536 equiprobable quantiles of N(0, 1),
-    rescaled to unit variance; tails are cut at 4.3 sigma (probability 1.5e-5).
-    """
-    return _NORMAL_QUANTILES[rng.integers(0, 1 << 16, size=shape, dtype=np.uint16)]
-
-
-def _normal_quantiles() -> np.ndarray:
-    q = ndtri((np.arange(1 << 16) + 0.5) / (1 << 16))
-    return (q / np.sqrt(np.mean(q * q))).astype(np.float32)
-
-
-_NORMAL_QUANTILES = _normal_quantiles()
-
-
 @dataclass(frozen=True)
 class _Level:
     """A texture level: ``image`` (H + 2 PAD, W + 2 PAD) uint16 in 1/256 gray levels, background
@@ -181,7 +166,7 @@ class AnalyticRenderer:
     """Renders one camera's view of one board (see the module docstring for the method).
 
     ``camera``: the true camera (its cam_from_world only matters for the lamp of "noisy").
-    ``pattern``: a board from :mod:`stereo_bench.patterns` (``texture(px_per_mm)``,
+    ``pattern``: a board from :mod:`stereo_bench.core.patterns` (``texture(px_per_mm)``,
     ``texture_origin_mm``, ``size_mm``). ``rays``: share a :class:`PixelRays` of the same camera
     between renderers (e.g. clean and noisy); built here if omitted (the slow part).
     """
@@ -286,7 +271,7 @@ class AnalyticRenderer:
         border = round(self.settings.background * 256)
         for r0, r1, c0, c1, exact in strips:
             xy = self.rays.xy[r0:r1 + 2, c0:c1 + 2]  # pixels r0-1..r1, c0-1..c1
-            texels = _sample_texels(xy, to_texels, s, exact)
+            texels = sample_texels(xy, to_texels, s, exact)
             samples = cv2.remap(level.image, texels, None, cv2.INTER_LINEAR,
                                 borderMode=cv2.BORDER_CONSTANT, borderValue=border)
             canvas[r0:r1, c0:c1] = cv2.resize(samples, (c1 - c0, r1 - r0),
@@ -295,24 +280,24 @@ class AnalyticRenderer:
 
     def _texel_map(self, level: "_Level", B: np.ndarray, R: np.ndarray, t: np.ndarray):
         """A function from normalized coordinates (h, w, 2) float32 to the level's texel
-        coordinates (h, w, 2) float32 (``_OUTSIDE`` where the ray meets the board behind the
+        coordinates (h, w, 2) float32 (``OUTSIDE`` where the ray meets the board behind the
         camera, when ``cut`` asks for it): the plane homography for a board that is exactly its
         pattern, else the ray's intersection with the physical board (board_shape.py)."""
         A = np.array([[level.px_per_mm, 0, -level.texel_offset[0]],
                       [0, level.px_per_mm, -level.texel_offset[1]], [0, 0, 1]])
         shape = self.settings.board
         if shape is None or shape.is_nominal:
-            return _plane_texels(A @ B)  # normalized (x, y) -> texel (j, i) of the level
+            return plane_texels(A @ B)  # normalized (x, y) -> texel (j, i) of the level
 
         R32, t32 = R.astype(np.float32), t.astype(np.float32)
         offset = level.texel_offset.astype(np.float32)
         scale = np.float32(level.px_per_mm)
-        plane = _plane_texels(A @ B)
+        plane = plane_texels(A @ B)
 
         def exact(xy):
             nominal, depth = shape.nominal_on_rays(xy, R32, t32)
             texels = nominal * scale - offset
-            texels[~(depth > 0)] = _OUTSIDE  # behind the camera, or parallel to the board
+            texels[~(depth > 0)] = OUTSIDE  # behind the camera, or parallel to the board
             return texels
 
         def surface(xy, cut):
@@ -328,7 +313,7 @@ class AnalyticRenderer:
             shift = exact(coarse) - plane(coarse, False)
             # Separable linear interpolation as two small matrix products (cv2.remap would
             # round its positions to 1/32 of a cell).
-            Wr, Wc = _linear_weights(h, rows), _linear_weights(w, cols)
+            Wr, Wc = linear_weights(h, rows), linear_weights(w, cols)
             shift = np.einsum("in,nmc,jm->ijc", Wr, shift, Wc, optimize=True)
             return plane(xy, False) + shift.astype(np.float32)
         return surface
@@ -373,14 +358,14 @@ class AnalyticRenderer:
         exy, euv = exy[on_img], euv[on_img]
 
         n_cells = (-(-H // _CELL), -(-W // _CELL))
-        board = _cells_touching(hit, n_cells)
+        board = cells_touching(hit, n_cells)
         cells = np.clip(np.floor(euv / _CELL).astype(int), 0, [n_cells[1] - 1, n_cells[0] - 1])
         board[cells[:, 1], cells[:, 0]] = 1
         if not board.any():
             return [], 0.0
         board = cv2.dilate(board, np.ones((3, 3), np.uint8))
         # One more ring of cells for the margin pixels the interpolation reads.
-        rough = cv2.dilate(_cells_touching(rough, n_cells), np.ones((3, 3), np.uint8))
+        rough = cv2.dilate(cells_touching(rough, n_cells), np.ones((3, 3), np.uint8))
         strips = []
         for a in np.flatnonzero(board.any(axis=1)):
             b0, b1 = np.flatnonzero(board[a])[[0, -1]]
@@ -400,7 +385,7 @@ class AnalyticRenderer:
         cam = self.camera
         _, J_dist, _ = distort_with_jacobians(xy, cam.dist)
         J_pix = np.array([[cam.fx, cam.skew], [0.0, cam.fy]]) @ J_dist
-        J = J_board @ _inv2(J_pix)
+        J = J_board @ inverse_2x2(J_pix)
         # Largest singular value of each 2x2, in closed form (batched SVD is 10x slower).
         frob = np.sum(J * J, axis=(1, 2))
         det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
@@ -552,62 +537,3 @@ class AnalyticRenderer:
             self._vignette = vignetting_gain(xy, self.settings.optics.corner_illumination,
                                              float(np.sum(corners ** 2, axis=1).max()))
         return self._vignette
-
-
-def _cells_touching(nodes: np.ndarray, n_cells: tuple[int, int]) -> np.ndarray:
-    """(rows, cols) uint8 cells with a flagged corner; node (a, b) is cell (a, b)'s top-left."""
-    cells = np.zeros(n_cells, dtype=np.uint8)
-    for da in (0, 1):
-        for db in (0, 1):
-            sub = nodes[da:da + n_cells[0], db:db + n_cells[1]]
-            cells[:sub.shape[0], :sub.shape[1]] |= sub
-    return cells
-
-
-def _inv2(J: np.ndarray) -> np.ndarray:
-    """Inverses of 2x2 matrices (N, 2, 2)."""
-    det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-    inv = np.stack([J[:, 1, 1], -J[:, 0, 1], -J[:, 1, 0], J[:, 0, 0]], -1) / det[:, None]
-    return inv.reshape(-1, 2, 2)
-
-
-def _linear_weights(n: int, nodes: np.ndarray) -> np.ndarray:
-    """(n, len(nodes)) float32 weights of linear interpolation at 0..n-1 from values at the
-    increasing integer positions ``nodes`` (first 0, last n - 1)."""
-    i = np.arange(n)
-    k = np.clip(np.searchsorted(nodes, i, side="right") - 1, 0, len(nodes) - 2)
-    frac = (i - nodes[k]) / (nodes[k + 1] - nodes[k])
-    W = np.zeros((n, len(nodes)), dtype=np.float32)
-    W[i, k] = 1 - frac
-    W[i, k + 1] = frac
-    return W
-
-
-def _plane_texels(M: np.ndarray):
-    """``to_texels`` of a plane homography M (3, 3) (see ``_sample_texels``)."""
-    def plane(xy, cut):
-        texels = cv2.perspectiveTransform(xy, M)
-        if cut:
-            texels[xy @ M[2, :2] + M[2, 2] <= 0] = _OUTSIDE
-        return texels
-    return plane
-
-
-def _sample_texels(xy: np.ndarray, to_texels, s: int, exact: bool) -> np.ndarray:
-    """Texel coordinates (s h, s w, 2) float32 of the s x s samples of h x w pixels.
-
-    ``xy`` (h + 2, w + 2, 2): normalized coordinates of the pixels and a one-pixel margin;
-    ``to_texels(xy, cut)``: normalized -> texel coordinates (``AnalyticRenderer._texel_map``).
-    cv2.resize's half-pixel convention puts sample j of the upsampled grid at pixel
-    (j + 0.5) / s - 0.5, exactly the sample offsets, so interpolating and cropping the margin
-    gives the samples. Normally the smooth texel map is interpolated (one mapping per pixel);
-    ``exact`` interpolates the rays (smooth everywhere) and maps each sample, cutting out
-    samples whose ray meets the board behind the camera.
-    """
-    h, w = xy.shape[0] - 2, xy.shape[1] - 2
-    size = (s * (w + 2), s * (h + 2))
-    if not exact:
-        up = cv2.resize(to_texels(xy, False), size, interpolation=cv2.INTER_LINEAR)
-        return up[s:-s, s:-s]
-    up = cv2.resize(xy, size, interpolation=cv2.INTER_LINEAR)[s:-s, s:-s]
-    return to_texels(up, True)

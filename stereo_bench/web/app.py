@@ -38,8 +38,10 @@ from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
-from ..config import ConfigError, load_rig, parse_rig, parse_yaml
-from ..sweep import parse_grid
+from ..config.bounds import ConfigError
+from ..config.schema import load_rig, parse_rig
+from ..config.yaml_reader import parse_yaml
+from ..run.grid import parse_grid
 from . import budget
 from .jobs import Jobs, grid_data
 from .preview import PreviewTimeout, PreviewWorker
@@ -158,8 +160,8 @@ def create_app(runs: Path, host: str = "127.0.0.1") -> FastAPI:
 
     @app.post("/api/trajectory")
     def trajectory(config: dict = Body(..., embed=True)):
-        from ..plots import plot_trajectory
-        from ..rig import Rig
+        from ..report.plots import plot_trajectory
+        from ..scene.rig import Rig
 
         cfg = need(config)
         buffer = io.BytesIO()

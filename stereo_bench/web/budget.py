@@ -11,7 +11,7 @@ multiply the time per sample and are not counted here: the preview's deadline
 
 from __future__ import annotations
 
-from ..config import RigConfig
+from ..config.schema import RigConfig
 
 #: One preview frame: the paper's 4096x3072 camera at 2x2 supersampling is 50 M samples.
 MAX_PREVIEW_SAMPLES = 64_000_000

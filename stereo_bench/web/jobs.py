@@ -25,8 +25,8 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..config import RigConfig
-from ..rundir import is_safe_name
+from ..config.schema import RigConfig
+from ..core.files import is_safe_name
 
 METHODS = ["zhang", "tsai", "bouguet", "opencv"]
 STOP_SECONDS = 5.0  # from SIGTERM to SIGKILL for a cancelled job's process group
@@ -192,7 +192,7 @@ def _work(task: tuple, conn) -> None:
 
     try:
         kind, config, out, methods, *rest = task
-        from ..config import parse_rig
+        from ..config.schema import parse_rig
 
         cfg = parse_rig(config, "the job's rig")
         if kind == "run":
@@ -215,11 +215,12 @@ def _rig_yaml(cfg: RigConfig) -> str:
 
 
 def _run(cfg: RigConfig, out: Path, methods: list[str], progress, conn) -> None:
-    from ..html_report import write_run_html
-    from ..pipeline import run_trial
-    from ..plots import plot_run
-    from ..report import run_title, write_report
-    from ..rundir import locked, write_text
+    from ..report.html import write_run_html
+    from ..run.pipeline import run_trial
+    from ..report.plots import plot_run
+    from ..report.markdown import run_title, write_report
+    from ..io.rundir import locked
+    from ..core.files import write_text
 
     with locked(out):
         write_text(out / "rig.yaml", _rig_yaml(cfg))
@@ -240,8 +241,9 @@ def _sweep(cfg: RigConfig, out: Path, methods: list[str], axes: dict, trials: in
            progress) -> None:
     import yaml
 
-    from ..rundir import write_text
-    from ..sweep import load_grid, run_sweep
+    from ..core.files import write_text
+    from ..run.grid import load_grid
+    from ..run.sweep import run_sweep
 
     out.mkdir(parents=True, exist_ok=True)
     write_text(out / "rig.yaml", _rig_yaml(cfg))

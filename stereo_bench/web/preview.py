@@ -91,10 +91,10 @@ def _serve(conn) -> None:
 def _render(config: dict, camera: int, frame: int, rays_cache) -> tuple[bytes, dict]:
     import cv2
 
-    from ..config import parse_rig
-    from ..dataset import frame_rng, render_settings
+    from ..config.schema import parse_rig
+    from ..scene.dataset import frame_rng, render_settings
     from ..render import AnalyticRenderer, PixelRays
-    from ..rig import Rig
+    from ..scene.rig import Rig
 
     cfg = parse_rig(config, "form")
     rig = Rig.from_config(cfg)

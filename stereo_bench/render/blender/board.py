@@ -23,9 +23,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ...camera import Camera
-from ...rundir import write_png
-from ..analytic import PixelRays, RenderSettings, gaussian_noise
+from ...core.camera import Camera
+from ...core.files import write_png
+from ..analytic import PixelRays, RenderSettings
+from ..texels import gaussian_noise
 from ..imaging import expose, vignetting_gain
 from .client import Worker
 from .lens import PinholeView
@@ -110,4 +111,3 @@ class BlenderRenderer:
     def close(self) -> None:
         """Remove the scratch frame (the texture stays: it is what was rendered)."""
         self._frame.unlink(missing_ok=True)
-

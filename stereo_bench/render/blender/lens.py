@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ...camera import Camera
+from ...core.camera import Camera
 from ..analytic import PixelRays
 
 MAX_SCALE = 2.0

@@ -1,0 +1,360 @@
+"""Finding each board family in an image (the package notes): the search image, the
+checkerboard (classic and SB) with its orientation, circle grids with their disc diameter, and
+ChArUco; every point then measured by the saddle fit or the disc centroid.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..core.patterns import AsymmetricCircles, Charuco, Checkerboard, Pattern, SymmetricCircles
+from .discs import measured_discs
+from .saddle import drop_grid_outliers, local_affines, nearest_mm, refine_saddles
+
+
+SEARCH_MAX_SIDE = 1600
+
+
+CHARUCO_MIN_SEARCH_SIDE = 1920  # markers of small images are searched on an enlarged copy
+
+
+MIN_CHARUCO_CORNERS = 6
+
+
+CHARUCO_SIGMA = 0.8
+
+
+# The cross of edge bands holds few pixels: longer arms than the checkerboard's (0.5 square)
+# took the wide camera's mean error from 0.071 px to 0.058 (24 clean frames: 8 of them).
+CHARUCO_REACH = 0.8
+
+
+METHODS = {
+    "checkerboard": ("classic", "sb"),
+    "symmetric_circles": ("grid",),
+    "asymmetric_circles": ("grid",),
+    "charuco": ("charuco",),
+}
+
+
+@dataclass(frozen=True, eq=False)
+class Detection:
+    """One image's result: ``points`` (N, 2) float64 px in ``object_points()`` order, NaN rows for
+    points not seen; ``ids`` (N,) the board's feature ids; ``error`` says why ``found`` is False."""
+
+    points: np.ndarray
+    ids: np.ndarray
+    found: bool
+    error: str | None = None
+
+
+def failed_detection(pattern: Pattern, reason: str) -> Detection:
+    n = len(pattern.ids())
+    return Detection(np.full((n, 2), np.nan), pattern.ids(), False, reason)
+
+
+def resolve_method(pattern: Pattern, method: str | None) -> str:
+    """The method name to use for ``pattern`` (its first method when None); raises on a bad name."""
+    methods = METHODS.get(pattern.kind)
+    if methods is None:
+        raise ValueError(f"no detector for pattern kind {pattern.kind!r}; known: {list(METHODS)}")
+    if method is None:
+        return methods[0]
+    if method not in methods:
+        raise ValueError(f"detection method {method!r} does not apply to {pattern.kind}; "
+                         f"expected one of {list(methods)}")
+    return method
+
+
+def detect(image: np.ndarray, pattern: Pattern, method: str | None = None) -> Detection:
+    """Detect ``pattern`` in an 8-bit grayscale (H, W) or BGR (H, W, 3) image.
+
+    A board that is not found gives ``found=False`` with the reason; bad input raises ValueError.
+    """
+    method = resolve_method(pattern, method)
+    image = np.asarray(image)
+    if image.dtype != np.uint8 or image.shape[2:] not in ((), (3,)):
+        raise ValueError(f"detect: expected an 8-bit (H, W) or (H, W, 3) image, got "
+                         f"{image.dtype} {image.shape}")
+    gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+    # The detectors look for dark features on a light board: an inverted board is searched in
+    # the inverted image, and a board not found as described is also tried in the other
+    # polarity (an inverted board nobody said was inverted; a print seen against the light).
+    first = 255 - gray if pattern.inverted else gray
+    found = _detect_in(first, pattern, method)
+    if found.found:
+        return found
+    other = _detect_in(255 - first, pattern, method)
+    if other.found or pattern.kind != "charuco":
+        return other if other.found else found
+    # A one-sided ChArUco print seen from behind (through thin paper or acrylic) is its mirror
+    # image, whose markers read as no id; mirrored back, each corner keeps its id, so it is the
+    # same board point. A chessboard or circle grid mirrored is found in the image as it is.
+    for polarity in (first, 255 - first):
+        back = _detect_in(np.ascontiguousarray(polarity[:, ::-1]), pattern, method)
+        if back.found:
+            points = back.points.copy()
+            points[:, 0] = gray.shape[1] - 1 - points[:, 0]  # pixel centres: x -> W - 1 - x
+            return Detection(points, back.ids, True)
+    return found
+
+
+def _detect_in(gray, pattern: Pattern, method: str) -> Detection:
+    try:
+        if pattern.kind == "checkerboard":
+            return _detect_checkerboard(gray, _SearchImage.of(gray), pattern, method)
+        if pattern.kind == "charuco":
+            return _detect_charuco(gray, _SearchImage.of(gray, CHARUCO_MIN_SEARCH_SIDE), pattern)
+        return _detect_circles(gray, _SearchImage.of(gray), pattern)
+    except cv2.error as e:  # OpenCV asserts on some degenerate candidate sets: a failed frame
+        return failed_detection(pattern, f"OpenCV error: {e.err or e}")
+
+
+# ----------------------------------------------------------------------------- search image
+@dataclass(frozen=True)
+class _SearchImage:
+    """The rescaled copy the detectors search, and the map back to full resolution."""
+
+    image: np.ndarray
+    scale: tuple[float, float]  # (sx, sy): search px per full-resolution px
+
+    @classmethod
+    def of(cls, gray: np.ndarray, min_side: int = 0) -> "_SearchImage":
+        """A copy shrunk to ``SEARCH_MAX_SIDE`` if the image is longer, else enlarged to
+        ``min_side`` if shorter (the identity otherwise)."""
+        height, width = gray.shape
+        longest = max(height, width)
+        s = SEARCH_MAX_SIDE / longest if longest > SEARCH_MAX_SIDE else max(min_side / longest, 1.0)
+        if s == 1.0:
+            return cls(gray, (1.0, 1.0))
+        size = (round(width * s), round(height * s))
+        # INTER_AREA averages whole source pixels (no aliasing of sharp edges when shrinking);
+        # cubic interpolation keeps edges steep when enlarging.
+        small = cv2.resize(gray, size, interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_CUBIC)
+        return cls(small, (size[0] / width, size[1] / height))
+
+    @property
+    def downscaled(self) -> bool:
+        return self.scale[0] < 1.0
+
+    def to_full(self, points: np.ndarray) -> np.ndarray:
+        """Search-image px (..., 2) -> full-resolution px, both with OpenCV's pixel centres."""
+        return (np.asarray(points, np.float64) + 0.5) / np.array(self.scale) - 0.5
+
+
+# ----------------------------------------------------------------------------- checkerboard
+def _detect_checkerboard(gray, search: _SearchImage, pattern: Checkerboard,
+                         method: str) -> Detection:
+    size = pattern.pattern_size
+    if method == "sb":
+        ok, corners = cv2.findChessboardCornersSB(search.image, size, flags=cv2.CALIB_CB_ACCURACY)
+    else:
+        ok, corners = cv2.findChessboardCorners(search.image, size)
+    if not ok:
+        name = "findChessboardCornersSB" if method == "sb" else "findChessboardCorners"
+        return failed_detection(pattern, f"{name} found no {size[0]}x{size[1]} inner-corner grid")
+    points = search.to_full(corners.reshape(-1, 2))
+    if method == "sb":
+        points = points[::-1]  # OpenCV 5.0's SB starts at the opposite corner (patterns.py)
+    if method == "classic" or search.downscaled:  # SB's own subpixel result is kept at full size
+        points = refine_saddles(gray, points, pattern.object_points()[:, :2], pattern.square_mm,
+                                 _checkerboard_sigma(points, pattern.pattern_size))
+    points = _orient_checkerboard(gray, points, pattern)
+    return Detection(drop_grid_outliers(pattern.object_points()[:, :2], points,
+                                         pattern.square_mm), pattern.ids(), True)
+
+
+def _checkerboard_sigma(points: np.ndarray, pattern_size: tuple[int, int]) -> float:
+    """Blur for the saddle fit: 1.5 px, below a tenth of the shortest grid step (row, column or
+    diagonal) in the image."""
+    cols, rows = pattern_size
+    grid = points.reshape(rows, cols, 2)
+    steps = [grid[:, 1:] - grid[:, :-1], grid[1:] - grid[:-1],
+             grid[1:, 1:] - grid[:-1, :-1], grid[1:, :-1] - grid[:-1, 1:]]
+    step = min(float(np.linalg.norm(s, axis=-1).min()) for s in steps)
+    return min(1.5, 0.1 * step)
+
+
+def _mean_around(gray, centre: np.ndarray, radius: float) -> float | None:
+    """Mean grey level of a square patch around ``centre``; None if it leaves the image."""
+    height, width = gray.shape
+    r = max(radius, 1.0)
+    if not (r <= centre[0] <= width - 1 - r and r <= centre[1] <= height - 1 - r):
+        return None
+    side = 2 * int(r) + 1
+    return float(cv2.getRectSubPix(gray, (side, side), tuple(map(float, centre))).mean())
+
+
+def _orient_checkerboard(gray, points: np.ndarray, pattern: Checkerboard) -> np.ndarray:
+    """Order ``points`` so that corner 0 is the one whose outer diagonal square is black.
+
+    Beyond an end corner, the square diagonally outward and the square outward along the row only
+    (one step further in, along the column) have opposite colours; their difference in grey level
+    says which is black, independent of lighting.  Object order has the black diagonal square at
+    corner 0 and, for an odd + even square count, a white one at the last corner: both ends vote.
+    A board with colours symmetric under 180 degrees (both counts odd or both even), or one whose
+    end squares are out of the image, falls back to the convention of symmetric circle grids.
+    """
+    cols, rows = pattern.pattern_size
+    grid = points.reshape(rows, cols, 2)
+    votes = []
+    for corner, row_step, col_step, sign in (
+        (grid[0, 0], grid[0, 1] - grid[0, 0], grid[1, 0] - grid[0, 0], 1.0),
+        (grid[-1, -1], grid[-1, -2] - grid[-1, -1], grid[-2, -1] - grid[-1, -1], -1.0),
+    ):
+        radius = 0.2 * min(np.linalg.norm(row_step), np.linalg.norm(col_step))
+        diagonal = _mean_around(gray, corner - 0.5 * row_step - 0.5 * col_step, radius)
+        beside = _mean_around(gray, corner - 0.5 * row_step + 0.5 * col_step, radius)
+        if diagonal is not None and beside is not None:
+            votes.append(sign * (beside - diagonal))  # > 0: a vote for object order
+    colour_symmetric = (pattern.squares_x + pattern.squares_y) % 2 == 0
+    if colour_symmetric or not votes:
+        return _upright(points, pattern.pattern_size, quarter_turns=False)
+    return points if sum(votes) > 0 else points[::-1]
+
+
+def _upright(points: np.ndarray, pattern_size: tuple[int, int], quarter_turns: bool) -> np.ndarray:
+    """Among the grid's symmetries (180 degrees; 90 too when ``quarter_turns``), the ordering whose
+    row direction (point 0 -> point 1, averaged over the grid) is closest to the image's +x axis."""
+    cols, rows = pattern_size
+    index = np.arange(cols * rows).reshape(rows, cols)
+    candidates = [np.rot90(index, k) for k in (range(4) if quarter_turns else (0, 2))]
+
+    def alignment(order: np.ndarray) -> float:
+        row_dir = np.diff(points[order], axis=1).mean(axis=(0, 1))
+        return row_dir[0] / np.linalg.norm(row_dir)
+
+    return points[max(candidates, key=alignment).ravel()]
+
+
+# ----------------------------------------------------------------------------- circle grids
+def _blob_detector(search: _SearchImage, pattern: SymmetricCircles | AsymmetricCircles):
+    """SimpleBlobDetector sized for this board in this image.
+
+    The default maxArea (5000 px^2) drops the discs of a board seen close up.  Largest disc: the
+    feature span (centre to centre, plus one diameter) fills twice the image diagonal, which a
+    tilted board near the camera can approach on its near side; smallest: 4 px across, below which
+    neither the blob detector nor a centroid is trustworthy.  The default 10 px minimum distance
+    between blobs would merge the discs of a far board.
+    """
+    span_mm = np.ptp(pattern.object_points()[:, :2], axis=0).min() + pattern.diameter_mm
+    largest = 2.0 * math.hypot(*search.image.shape) * pattern.diameter_mm / span_mm
+    params = cv2.SimpleBlobDetector_Params()
+    params.minArea = math.pi * 2.0**2
+    params.maxArea = math.pi * (largest / 2) ** 2
+    params.minDistBetweenBlobs = 2.0
+    return cv2.SimpleBlobDetector_create(params)
+
+
+def _detect_circles(gray, search: _SearchImage, pattern: SymmetricCircles | AsymmetricCircles):
+    found = _find_circle_grid(search, pattern)
+    if isinstance(found, str):
+        return failed_detection(pattern, found)
+    return Detection(measured_discs(gray, *found, pattern)[0], pattern.ids(), True)
+
+
+def measure_disc_diameter(images, pattern: SymmetricCircles | AsymmetricCircles) -> float:
+    """The discs' diameter in mm, measured from images of a circle grid whose spacing is known.
+
+    ``images``: 8-bit grey (H, W) or BGR (H, W, 3) arrays; ``pattern.diameter_mm`` need only be
+    a rough guess (it sizes the first measuring window; within about -20 %/+60 % of the truth).
+    Each disc's darkness summed over its window, over the darkness of its core, is its imaged
+    area (blur moves darkness about but keeps its sum); the local board -> image map fitted to
+    the neighbouring centres (``local_affines``) takes it to board mm^2, and the diameter of the
+    circle of that area is the disc's.  The result is the median over every disc measured in every
+    image (discs cut by the image or the print's edge are left out).  Raises ValueError if the
+    pattern is not a circle grid or no disc could be measured.
+    """
+    if not isinstance(pattern, (SymmetricCircles, AsymmetricCircles)):
+        raise ValueError(f"measure_disc_diameter: pattern must be a circle grid, got "
+                         f"{pattern.kind!r}")
+    diameters = []
+    for k, image in enumerate(images):
+        image = np.asarray(image)
+        if image.dtype != np.uint8 or image.shape[2:] not in ((), (3,)):
+            raise ValueError(f"measure_disc_diameter: image {k}: expected an 8-bit (H, W) or "
+                             f"(H, W, 3) image, got {image.dtype} {image.shape}")
+        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+        found = _find_circle_grid(_SearchImage.of(gray), pattern)
+        if not isinstance(found, str):
+            diameters.append(measured_discs(gray, *found, pattern)[1])
+    measured = np.concatenate(diameters) if diameters else np.array([])
+    if not np.isfinite(measured).any():
+        raise ValueError(f"measure_disc_diameter: no disc of the {pattern.kind} grid could be "
+                         f"measured in the {len(diameters)} image(s) where it was found")
+    return float(np.nanmedian(measured))
+
+
+def _find_circle_grid(search: _SearchImage, pattern: SymmetricCircles | AsymmetricCircles):
+    """(points (N, 2) full-resolution px in object order, local affines) or the failure reason.
+
+    The default grid finder fails on some clean, moderately tilted views that clustering finds;
+    clustering in turn sometimes returns a scrambled order, which the affine check rejects.
+    """
+    symmetric = isinstance(pattern, SymmetricCircles)
+    grid = cv2.CALIB_CB_SYMMETRIC_GRID if symmetric else cv2.CALIB_CB_ASYMMETRIC_GRID
+    cols, rows = pattern.pattern_size
+    object_xy = pattern.object_points()[:, :2]
+    step_mm = nearest_mm(object_xy)
+    blobs = _blob_detector(search, pattern)
+    kind = "symmetric" if symmetric else "asymmetric"
+    reason = f"findCirclesGrid found no {cols}x{rows} {kind} circle grid"
+    for flags in (grid, grid | cv2.CALIB_CB_CLUSTERING):
+        ok, centres = cv2.findCirclesGrid(search.image, pattern.pattern_size, flags=flags,
+                                          blobDetector=blobs)
+        if not ok:
+            continue
+        points = search.to_full(centres.reshape(-1, 2))
+        if symmetric:
+            points = _upright(points, pattern.pattern_size, quarter_turns=cols == rows)
+        affines, misfit = local_affines(object_xy, points, 1.5 * step_mm)
+        # Even strong perspective and the wide lens leave < 0.14 step of misfit over a point's
+        # neighbours (measured on the truth); a mis-ordered grid is off by about a step.
+        if np.nanmax(misfit) > 0.3 * step_mm:
+            reason = "findCirclesGrid returned a grid whose order is not locally affine"
+            continue
+        return points, affines
+    return reason
+
+
+# ----------------------------------------------------------------------------- ChArUco
+def _detect_charuco(gray, search: _SearchImage, pattern: Charuco) -> Detection:
+    board = pattern.cv_board()
+    # Markers are searched on the rescaled copy: ArUco needs a few pixels per marker cell (a 7x7
+    # marker of a far board on the 640 px camera has about 1.2), and enlarging the wide camera's
+    # images 3x found twice the corners (1493 against 740 of 2112 over 24 clean frames) at no
+    # cost in accuracy.  CharucoDetector then interpolates the chessboard corners from the
+    # scaled-back markers and refines them on the full image.
+    aruco = cv2.aruco.ArucoDetector(board.getDictionary(), cv2.aruco.DetectorParameters())
+    markers, marker_ids, _ = aruco.detectMarkers(search.image)
+    if marker_ids is None:
+        return failed_detection(pattern, "no ArUco marker of the board was found")
+    markers = tuple(search.to_full(m).astype(np.float32) for m in markers)
+    # A two-sided board: one side faces the camera; its marker ids tell which.
+    side = pattern
+    if pattern.two_sided:
+        back = pattern.back()
+        if np.isin(marker_ids, back.marker_ids()).sum() > np.isin(marker_ids,
+                                                                   pattern.marker_ids()).sum():
+            side = back
+            board = side.cv_board()
+    corners, ids, _, _ = cv2.aruco.CharucoDetector(board).detectBoard(
+        gray, markerCorners=markers, markerIds=marker_ids)
+    if ids is None or len(ids) < MIN_CHARUCO_CORNERS:
+        seen = 0 if ids is None else len(ids)
+        return failed_detection(pattern, f"only {seen} ChArUco corners ({len(marker_ids)} "
+                                         f"markers) found, need {MIN_CHARUCO_CORNERS}")
+    points = np.full((len(pattern.ids()), 2), np.nan)
+    points[ids.ravel()] = corners.reshape(-1, 2)
+    points = refine_saddles(gray, points, side.object_points()[:, :2], side.square_mm,
+                             CHARUCO_SIGMA, band_mm=(side.square_mm - side.marker_mm) / 4,
+                             reach=CHARUCO_REACH)
+    if side is not pattern:  # the back's corners in the front's order (the board frame)
+        front = np.full_like(points, np.nan)
+        front[pattern.back_to_front] = points
+        points = front
+    return Detection(points, pattern.ids(), True)

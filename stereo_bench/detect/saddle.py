@@ -1,0 +1,294 @@
+"""The saddle fit that measures checkerboard and ChArUco corners from the board's own content
+(the package notes), and the local board -> image geometry it is laid out with.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+
+MAX_WINDOW_PX = 30.0  # half-extent cap of the saddle fit's window along a grid axis
+
+
+_SADDLE_MARGIN = 3  # px a saddle window may move before its gradient patch is re-cut
+
+
+# ----------------------------------------------------------------------------- local geometry
+def _leave_one_out(object_xy: np.ndarray, points: np.ndarray, radius_mm: float) -> np.ndarray:
+    """(N,) how far each point lies from where its neighbours (within ``radius_mm``, the point
+    itself left out) put it by an affine fit, in board mm; NaN where it cannot be predicted."""
+    out = np.full(len(points), np.nan)
+    seen = np.isfinite(points).all(axis=1)
+    near = np.linalg.norm(object_xy[:, None] - object_xy[None], axis=-1) <= radius_mm
+    for i in np.flatnonzero(seen):
+        nb = np.flatnonzero(near[i] & seen)
+        nb = nb[nb != i]
+        if len(nb) < 3:  # an affine map needs three (a board corner has exactly three)
+            continue
+        X = np.column_stack([object_xy[nb] - object_xy[i], np.ones(len(nb))])
+        sol = np.linalg.lstsq(X, points[nb], rcond=None)[0]  # rows: d/dx, d/dy, value at i
+        out[i] = np.linalg.norm(sol[2] - points[i]) / np.linalg.norm(sol[:2], 2)
+    return out
+
+
+def drop_grid_outliers(object_xy: np.ndarray, points: np.ndarray, step_mm: float) -> np.ndarray:
+    """Points (N, 2) with corners that break the local grid set to NaN.
+
+    cornerSubPix can converge to a wrong corner in noisy images (5-6 px off, on the wide
+    camera's noisy renders). Predicted from its neighbours, a true corner of any paper rig's
+    trajectory lies within 0.044 step; the worst corner beyond 0.15 step is dropped and the rest
+    re-checked, then dropped corners that fit the remaining grid come back (an outlier can make a
+    good neighbour look worse than itself).
+    """
+    points = points.copy()
+    dropped = {}
+    while True:
+        misfit = _leave_one_out(object_xy, points, 1.5 * step_mm)
+        if not np.any(misfit > 0.15 * step_mm):
+            break
+        worst = int(np.nanargmax(misfit))
+        dropped[worst] = points[worst].copy()
+        points[worst] = np.nan
+    for i, p in dropped.items():
+        trial = points.copy()
+        trial[i] = p
+        if _leave_one_out(object_xy, trial, 1.5 * step_mm)[i] <= 0.15 * step_mm:
+            points = trial
+    return points
+
+
+def local_affines(object_xy: np.ndarray, points: np.ndarray, radius_mm: float):
+    """Board-mm -> px linear maps at each point, fitted to its neighbours within ``radius_mm``.
+
+    Least squares on the differences to the point itself.  Returns (N, 2, 2) maps (NaN where the
+    point is missing or has fewer than two non-collinear neighbours) and (N,) misfits: the largest
+    residual of a neighbour, expressed in board mm (residual px / the map's largest stretch).
+    """
+    affines = np.full((len(points), 2, 2), np.nan)
+    misfit = np.full(len(points), np.nan)
+    seen = np.isfinite(points).all(axis=1)
+    for i in np.flatnonzero(seen):
+        near = seen & (np.linalg.norm(object_xy - object_xy[i], axis=1) <= radius_mm)
+        near[i] = False
+        d_obj, d_img = object_xy[near] - object_xy[i], points[near] - points[i]
+        if len(d_obj) < 2 or np.linalg.matrix_rank(d_obj) < 2:
+            continue
+        A = np.linalg.lstsq(d_obj, d_img, rcond=None)[0].T
+        affines[i] = A
+        misfit[i] = np.linalg.norm(d_obj @ A.T - d_img, axis=1).max() / np.linalg.norm(A, 2)
+    return affines, misfit
+
+
+def nearest_mm(object_xy: np.ndarray) -> float:
+    """Distance from a board's first feature point to its nearest neighbour (the lattice step)."""
+    return float(np.min(np.linalg.norm(object_xy[1:] - object_xy[0], axis=1)))
+
+
+# ----------------------------------------------------------------------------- saddle points
+def _blurred_box(gray, x0: int, y0: int, x1: int, y1: int, sigma: float):
+    """``gray`` blurred with ``sigma`` px (float32) over the box [x0, x1) x [y0, y1) cut to the
+    image, and the cut box's top-left pixel (x, y); None if the box misses the image.
+
+    The copy blurred carries the kernel's reach of context on every side inside the image, so the
+    values are those of the whole image blurred (both reflect at the image's own border): blurring
+    a few windows costs little where the whole 4096 x 3072 frame cost more than the fit itself.
+    """
+    height, width = gray.shape
+    bx0, by0, bx1, by1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+    if bx1 <= bx0 or by1 <= by0:
+        return None
+    context = math.ceil(4 * sigma) + 1  # OpenCV's float kernel reaches round(4 sigma) px
+    sx0, sy0 = max(bx0 - context, 0), max(by0 - context, 0)
+    sx1, sy1 = min(bx1 + context, width), min(by1 + context, height)
+    blurred = cv2.GaussianBlur(gray[sy0:sy1, sx0:sx1].astype(np.float32), (0, 0), sigma)
+    return blurred[by0 - sy0:by1 - sy0, bx0 - sx0:bx1 - sx0], (bx0, by0)
+
+
+def _print_extent(gray, q, A, axis, sign, square_mm, perp_mm, sigma, samples: int = 40) -> float:
+    """How far (board mm, up to one square) the print visibly goes on from corner ``q`` (px)
+    along grid axis ``axis`` (0: x, 1: y) in direction ``sign``, seen in ``gray`` blurred with
+    ``sigma``.
+
+    Beyond an edge corner lie the two outer squares on either side of the grid line through it,
+    one black and one white as long as the print goes on.  Their grey levels are sampled (bilinear)
+    at ``perp_mm`` on either side of that line, from 0.15 square (clear of the other line's blur)
+    out to one square; the print ends where their contrast falls below half its value near the
+    corner (beyond it both samples see the same surround, or the same occluder).  Samples off the
+    image are NaN, which ends the print there.
+    """
+    t = np.linspace(0.15, 1.0, samples)
+    e = np.eye(2)
+    along = q + (sign * t[:, None] * square_mm * e[axis]) @ A.T
+    side = perp_mm * e[1 - axis] @ A.T
+    xy = np.concatenate([along + side, along - side])
+    lo, hi = np.floor(xy.min(0)).astype(int) - 1, np.ceil(xy.max(0)).astype(int) + 2
+    box = _blurred_box(gray, lo[0], lo[1], hi[0], hi[1], sigma)
+    if box is None:
+        return 0.0
+    patch, origin = box
+    xy = (xy - origin).astype(np.float32)
+    values = cv2.remap(patch, xy[:, :1], xy[:, 1:], cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan).ravel()
+    contrast = np.abs(values[:samples] - values[samples:])
+    reference = np.median(contrast[t <= 0.3])
+    if not reference > 0:
+        return 0.0
+    ends = np.flatnonzero(~(contrast >= 0.5 * reference))
+    return square_mm if len(ends) == 0 else float(t[ends[0]]) * square_mm
+
+
+def refine_saddles(gray, points: np.ndarray, object_xy: np.ndarray, square_mm: float,
+                    sigma: float, band_mm: float | None = None, reach: float = 0.5,
+                    iterations: int = 20) -> np.ndarray:
+    """Re-measure corners (N, 2) px with a saddle fit that only sees the board's own squares.
+
+    cornerSubPix (Förstner & Gülch 1987) finds the point q that every gradient g at pixels p in a
+    window is orthogonal to, least squares: (sum w g g^T) q = sum w g g^T p.  Its square window
+    of half a square reaches, at an edge corner of a sheared view, the surround beside the outer
+    squares when the print has no margin or is cut into them (OpenCV's sample stereo images:
+    3-6 corners of an end column 1.5-9 px off), or an occluder beside the board.  Here the
+    window is a parallelogram in board units, through the local board -> image map fitted to the
+    neighbouring corners (``local_affines``): |u|, |v| within ``reach`` square of the corner, and
+    ``guard`` px (3 sigma + 2: the blur and the gradient's stencil) short of the next grid line
+    or, where there is no neighbouring corner, of where the print is seen to end
+    (``_print_extent``).  Both extents are taken symmetric (the shorter side rules), so the
+    window stays point-symmetric about q, as a saddle is; where the image border cuts it, only
+    pixels whose mirror through q is inside count.  The weights, cos^2 along u times along v,
+    fall to zero at the window's sides, so no pixel jumps in or out as q moves.  ``band_mm``
+    keeps only pixels within that distance of the two edge lines (ChArUco: the markers' borders
+    stay out).  Gradients are central differences on a copy blurred with ``sigma`` px.
+    On clean renders of the wide camera (tests/detect/test_detect.py's views) this measured the
+    checkerboard to 0.010 px mean (cornerSubPix with the old window: 0.013) and ChArUco to
+    0.020 px (0.028) with ``reach`` 0.8 (its cross of bands holds few pixels).  A corner without a local map keeps its estimate; one whose fit fails,
+    does not converge or moves by more than a quarter square is NaN (not measured).
+    """
+    affines, _ = local_affines(object_xy, points, 1.5 * square_mm)
+    guard = 3.0 * sigma + 2.0
+    perp_mm = band_mm if band_mm is not None else 0.3 * square_mm
+    height, width = gray.shape
+    refined = points.copy()
+    seen = np.flatnonzero(np.isfinite(affines[:, 0, 0]))
+    A = affines[seen]
+    A_inv = np.linalg.inv(A)
+    cells = np.round(object_xy / square_mm).astype(int)
+    known = {tuple(c) for c in cells[np.isfinite(points).all(axis=1)]}
+    extent = np.full((len(seen), 2), square_mm)
+    for m, i in enumerate(seen):
+        for k in range(2):
+            for sign in (-1, 1):
+                if tuple(cells[i] + sign * np.eye(2, dtype=int)[k]) not in known:
+                    extent[m, k] = min(extent[m, k], _print_extent(
+                        gray, points[i], A[m], k, sign, square_mm, perp_mm, sigma))
+    px_per_mm = np.linalg.norm(A, axis=1)  # (M, 2): px per board mm along u and v
+    lim = np.minimum(reach * square_mm, extent - guard * np.linalg.norm(A_inv, axis=2))
+    # Windows wider than MAX_WINDOW_PX px add nothing measurable but time (large images).
+    lim = np.minimum(lim, MAX_WINDOW_PX / px_per_mm)
+    fits = np.all(lim * px_per_mm >= 1.5, axis=1)
+    refined[seen[~fits]] = np.nan
+    seen, A_inv, lim = seen[fits], A_inv[fits], lim[fits]
+    half = np.einsum("mij,mj->mi", np.abs(A[fits]), lim)  # px half-extents of the bounding box
+    start = points[seen]
+    q, steps, ok = start.copy(), np.zeros(len(seen), int), np.zeros(len(seen), bool)
+    # All corners iterate together, on a stack of gradient patches that hold each one's window
+    # with _SADDLE_MARGIN px to spare; a corner whose window moves out gets a new patch and goes on.
+    pending = np.arange(len(seen))
+    while len(pending):
+        origin = np.floor(q[pending] - half[pending]).astype(int) - _SADDLE_MARGIN
+        size = int((np.ceil(q[pending] + half[pending]) + 1 - origin).max()) + _SADDLE_MARGIN
+        moments = _gradient_moments(gray, origin, size, sigma)
+        live = np.arange(len(pending))  # rows of the stack still iterating on it
+        moved_out = []
+        while len(live):
+            c = pending[live]
+            box_lo = np.maximum(np.floor(q[c] - half[c]), 1).astype(int)
+            box_hi = np.minimum(np.ceil(q[c] + half[c]) + 1, [width - 1, height - 1]).astype(int)
+            failed = (box_hi <= box_lo).any(1)
+            out = ~failed & ((box_lo < origin[live]) | (box_hi > origin[live] + size)).any(1)
+            moved_out.extend(c[out])
+            live, c, box_lo, box_hi = (a[~failed & ~out] for a in (live, c, box_lo, box_hi))
+            if not len(live):
+                break
+            shift, solvable = _saddle_steps(moments[live], origin[live], q[c], A_inv[c],
+                                            lim[c], box_lo, box_hi, band_mm, (width, height))
+            q[c[solvable]] += shift[solvable]
+            steps[c] += 1
+            ok[c[solvable]] = np.linalg.norm(shift[solvable], axis=1) < 1e-4
+            live = live[solvable & ~ok[c] & (steps[c] < iterations)]
+        pending = np.array(moved_out, dtype=int)
+    moved = np.linalg.norm(np.einsum("mij,mj->mi", A_inv, q - start), axis=1)
+    refined[seen] = np.where((ok & (moved < 0.25 * square_mm))[:, None], q, np.nan)
+    return refined
+
+
+def _gradient_moments(gray, origin: np.ndarray, size: int, sigma: float) -> np.ndarray:
+    """Per pixel of the squares of ``size`` px whose top-left pixels are ``origin`` (M, 2) (x, y):
+    (M, size * size, 5) float64 [gx gx, gx gy, gy gy, gx (gx x + gy y), gy (gx x + gy y)], with
+    (gx, gy) the gradient (central differences) of ``gray`` blurred with ``sigma`` and (x, y)
+    the pixel relative to the square's top-left; zero where it would need pixels off the image.
+
+    Every sum of the saddle fit is a weighted sum of these, so an iteration is one product with
+    the weights: the gradients are computed once however often the window moves.
+    """
+    blurred = np.zeros((len(origin), size + 2, size + 2))
+    for k, (x, y) in enumerate(origin):
+        box = _blurred_box(gray, x - 1, y - 1, x + size + 1, y + size + 1, sigma)
+        if box is not None:
+            patch, (bx, by) = box
+            blurred[k, by - y + 1:by - y + 1 + patch.shape[0],
+                    bx - x + 1:bx - x + 1 + patch.shape[1]] = patch
+    gx = 0.5 * (blurred[:, 1:-1, 2:] - blurred[:, 1:-1, :-2])
+    gy = 0.5 * (blurred[:, 2:, 1:-1] - blurred[:, :-2, 1:-1])
+    xs = np.arange(size)
+    g_dot_p = gx * xs + gy * xs[:, None]
+    return np.stack([gx * gx, gx * gy, gy * gy, gx * g_dot_p, gy * g_dot_p],
+                    -1).reshape(len(origin), size * size, 5)
+
+
+def _saddle_steps(moments, origin, q, A_inv, lim, box_lo, box_hi, band_mm, image_size):
+    """One step of the saddle fit for M corners at once: shifts (M, 2) px and whether each
+    corner's normal matrix was well enough conditioned to solve (M,) bool.
+
+    ``moments`` (M, S * S, 5): ``_gradient_moments`` of squares with top-left pixels ``origin``
+    (M, 2); ``q`` (M, 2) the current estimates; ``A_inv`` (M, 2, 2) px -> board mm; ``lim``
+    (M, 2) the window's half-extents in mm; ``box_lo``, ``box_hi`` (M, 2) its bounding box (end
+    exclusive) in px.
+    """
+    size = math.isqrt(moments.shape[1])
+    width, height = image_size
+    pixels = origin[:, :, None] + np.arange(size)  # (M, 2, S): x then y coordinates
+    dx, dy = pixels[:, 0] - q[:, :1], pixels[:, 1] - q[:, 1:]  # (M, S) offsets from q
+    # Only pixels whose mirror image through q is in the image too: a window cut by the image
+    # border stays point-symmetric, as the saddle is.
+    mirrored = np.minimum(q, [width - 1, height - 1] - q)
+    in_x = ((pixels[:, 0] >= box_lo[:, :1]) & (pixels[:, 0] < box_hi[:, :1])
+            & (np.abs(dx) <= mirrored[:, :1]))
+    in_y = ((pixels[:, 1] >= box_lo[:, 1:]) & (pixels[:, 1] < box_hi[:, 1:])
+            & (np.abs(dy) <= mirrored[:, 1:]))
+    use = in_x[:, None, :] & in_y[:, :, None]  # (M, S rows of y, S columns of x)
+    # The weight's phases, pi/2 at the window's sides: theta = pi/2 (A_inv p) / lim is a sum of
+    # a term in x and one in y, so their cosines come from (M, S) cosines and sines of each.
+    scale = 0.5 * np.pi * A_inv / lim[:, :, None]
+    w = np.ones(use.shape)
+    near_edges = np.zeros(use.shape, bool)  # within band_mm of either edge line
+    for axis in range(2):
+        tx, ty = scale[:, axis, :1] * dx, scale[:, axis, 1:] * dy
+        theta = np.abs(tx[:, None, :] + ty[:, :, None])
+        use &= theta <= 0.5 * np.pi
+        if band_mm is not None:
+            near_edges |= theta < 0.5 * np.pi * band_mm / lim[:, axis, None, None]
+        w *= (np.cos(tx)[:, None, :] * np.cos(ty)[:, :, None]
+              - np.sin(tx)[:, None, :] * np.sin(ty)[:, :, None]) ** 2
+    if band_mm is not None:
+        use &= near_edges
+    w *= use
+    sums = np.matmul(w.reshape(len(q), 1, -1), moments)[:, 0]  # (M, 5)
+    normal = sums[:, [0, 1, 1, 2]].reshape(-1, 2, 2)
+    # sum w g g^T (p - q), the pixel p relative to the square's top-left.
+    rhs = sums[:, 3:] - (normal @ (q - origin)[:, :, None])[..., 0]
+    solvable = np.linalg.cond(normal) <= 1e6
+    shift = np.zeros_like(q)
+    shift[solvable] = np.linalg.solve(normal[solvable], rhs[solvable, :, None])[..., 0]
+    return shift, solvable

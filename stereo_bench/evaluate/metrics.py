@@ -1,0 +1,166 @@
+"""Accuracy of a calibration against exact ground truth.
+
+* ``rpe_rms``: the paper's RPE_RMS (SynthCal, section 4.2), sqrt(mean over points of the squared
+  residual norm), in px. It measures the fit to the detections, not the camera: at 0.5 px noise
+  it sits near 0.7 px for every estimate (TRAPS.md).
+* ``parameter_rmse``: the paper's RMSE over [fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6]. It
+  mixes units (px with unitless coefficients, so the focal lengths and principal point dominate)
+  and is meaningless when the coefficients are not identifiable (rational model); it is kept only
+  to compare with the paper's tables. ``parameter_errors`` gives each error on its own.
+* ``projection_difference``: how far the estimated camera projects the true camera's rays, over a
+  grid covering the image (px) -- the error a user of the estimate sees. Reported as is, and after
+  the best-fit rotation between the two camera frames (as mrcal's projection_diff does), which
+  removes what a change of extrinsics would absorb.
+* ``validity``: where an estimate has one ray per pixel (a fit can fold inside the image).
+* ``pose_errors``: board pose errors per view, rotation (deg) and translation (mm).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ..core.camera import (DIST_NAMES, INTRINSIC_NAMES, Camera, project_points,
+                           project_with_jacobians)
+from ..core.poses import geodesic_distance, rodrigues_to_matrix
+from ..core.distortion import radial_fold_radius
+
+PAPER_PARAMS = ("fx", "fy", "cx", "cy") + DIST_NAMES
+
+
+def rpe_rms(camera: Camera, rvecs, tvecs, object_points, image_points) -> float:
+    """RPE_RMS (px) of board views: per view (N_i, 3) board points and (N_i, 2) detections, with
+    cam_from_board poses rvecs, tvecs (V, 3) and the camera's intrinsics and distortion."""
+    squared = [np.sum((project_points(o, camera.intrinsics, camera.dist, r, t) - p) ** 2, axis=1)
+               for o, p, r, t in zip(object_points, image_points, rvecs, tvecs)]
+    return float(np.sqrt(np.mean(np.concatenate(squared))))
+
+
+def _params(camera: Camera) -> dict:
+    return dict(zip(INTRINSIC_NAMES + DIST_NAMES, np.append(camera.intrinsics, camera.dist)))
+
+
+def parameter_errors(estimate: Camera, truth: Camera) -> dict:
+    """estimate - truth for fx, fy, cx, cy, skew (px) and k1..k6, p1, p2 (unitless)."""
+    est, true = _params(estimate), _params(truth)
+    return {k: float(est[k] - true[k]) for k in est}
+
+
+def parameter_rmse(estimate: Camera, truth: Camera) -> float:
+    """The paper's RMSE over PAPER_PARAMS (mixed units; see the module docstring)."""
+    err = parameter_errors(estimate, truth)
+    return float(np.sqrt(np.mean([err[k] ** 2 for k in PAPER_PARAMS])))
+
+
+def _grid(camera: Camera, n: tuple[int, int]) -> np.ndarray:
+    """(nu * nv, 2) pixels from corner to corner of the image (OpenCV pixel centres)."""
+    u = np.linspace(0.0, camera.width - 1, n[0])
+    v = np.linspace(0.0, camera.height - 1, n[1])
+    return np.stack(np.meshgrid(u, v), -1).reshape(-1, 2)
+
+
+def projection_difference_map(estimate: Camera, truth: Camera,
+                              grid: tuple[int, int] = (160, 120)) -> np.ndarray:
+    """(rows, columns) px: per grid pixel, how far the estimate projects the true camera's ray
+    (intrinsics only, no rotation compensation); the map behind ``projection_difference``, NaN
+    where the estimate is not valid."""
+    uv = _grid(truth, grid)
+    xy = truth.unproject(uv)
+    diff = np.linalg.norm(estimate.normalized_to_pixels(xy) - uv, axis=1)
+    diff[~_valid(estimate, uv, xy)] = np.nan  # where the estimate is invalid (see below)
+    return diff.reshape(grid[1], grid[0])
+
+
+def _valid(estimate: Camera, uv: np.ndarray, true_rays: np.ndarray) -> np.ndarray:
+    """Pixels whose true ray lies inside the estimate's radial fold and that have one ray
+    through the estimate: where comparing the two projections means something."""
+    return ((np.linalg.norm(true_rays, axis=-1) < radial_fold_radius(estimate.dist))
+            & estimate.invertible(uv))
+
+
+def validity(estimate: Camera, grid: tuple[int, int] = (64, 48)) -> dict:
+    """Where an estimate can be used over its image: the fraction of a grid of pixels (corner to
+    corner) that have exactly one ray through it, and the normalized radius where its radial
+    distortion folds or has a pole (None when it has neither within 87 degrees). A fitted
+    high-order model can fold inside the image (TRAPS.md); triangulation and projection through
+    it are meaningless there."""
+    uv = _grid(estimate, grid)
+    ok = estimate.invertible(uv)
+    fold = radial_fold_radius(estimate.dist)
+    return {"valid_fraction": float(ok.mean()), "fold_radius": fold if np.isfinite(fold) else None,
+            "usable": bool(ok.all())}
+
+
+def projection_difference(estimate: Camera, truth: Camera, grid: tuple[int, int] = (64, 48),
+                          rotation=None) -> dict:
+    """Mean and max pixel distance between the two cameras' projections of the same rays.
+
+    Each pixel of a ``grid`` (columns, rows) spanning the image corner to corner is unprojected
+    with the TRUE camera (exact Newton inversion) and projected with the estimate's intrinsics and
+    distortion. Only intrinsics are compared (cam_from_world is ignored: a single-camera
+    calibration has its own frame); ``rotation``, a Rodrigues vector estimate_cam_from_true_cam
+    (e.g. from a rig calibration), rotates the rays in between.
+
+    The statistics cover only the pixels where the estimate is valid: the true ray lies inside
+    the estimate's radial fold, and the pixel has one ray through the estimate. Beyond its fold
+    (or pole) an estimate's projection is not a small error but a different branch of its
+    polynomial (thousands of px near a pole), so including those pixels made the mean depend on
+    how close the grid came to the pole. ``points_left_out`` / ``fraction_left_out`` say how much
+    of the grid was excluded; with all of it excluded the statistics are None.
+
+    ``mean_px`` / ``max_px``: the frames as given.
+    ``rotation_compensated_mean_px`` / ``..._max_px``: after the extra rotation (``rotation_deg``)
+    of the rays that minimizes the squared pixel differences -- what remains when a rotation of
+    the camera frame, which extrinsics would absorb, is explained away (as mrcal's projection_diff).
+    """
+    uv = _grid(truth, grid)
+    xy = truth.unproject(uv)
+    valid = _valid(estimate, uv, xy)
+    left_out = {"points_left_out": int((~valid).sum()),
+                "fraction_left_out": float((~valid).mean())}
+    if not valid.any():
+        return {"mean_px": None, "max_px": None, "rotation_compensated_mean_px": None,
+                "rotation_compensated_max_px": None, "rotation_deg": None, **left_out}
+    uv = uv[valid]
+    rays = np.column_stack([xy[valid], np.ones(len(uv))])
+    if rotation is not None:
+        rays = rays @ rodrigues_to_matrix(rotation).T
+    zero = np.zeros(3)
+
+    def residuals(rvec):
+        return (project_points(rays, estimate.intrinsics, estimate.dist, rvec, zero) - uv).ravel()
+
+    def jacobian(rvec):
+        J = project_with_jacobians(rays, estimate.intrinsics, estimate.dist, rvec, zero)[1]
+        return J["pose"][:, :, :3].reshape(-1, 3)
+
+    direct = np.linalg.norm(residuals(zero).reshape(-1, 2), axis=1)
+    fit = least_squares(residuals, zero, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15)
+    rotated = np.linalg.norm(fit.fun.reshape(-1, 2), axis=1)
+    return {
+        "mean_px": float(direct.mean()),
+        "max_px": float(direct.max()),
+        "rotation_compensated_mean_px": float(rotated.mean()),
+        "rotation_compensated_max_px": float(rotated.max()),
+        "rotation_deg": float(np.degrees(np.linalg.norm(fit.x))),
+        **left_out,
+    }
+
+
+def pose_errors(rvecs, tvecs, true_rvecs, true_tvecs) -> dict:
+    """Per-view errors of estimated cam_from_board poses against the true ones (all (V, 3)).
+
+    rotation_deg: angle of R_est R_true^T; translation_mm: |t_est - t_true|; plus mean and max.
+    """
+    R = rodrigues_to_matrix(np.asarray(rvecs, dtype=np.float64))
+    R_true = rodrigues_to_matrix(np.asarray(true_rvecs, dtype=np.float64))
+    rot = np.degrees(geodesic_distance(R_true, R))
+    trans = np.linalg.norm(np.asarray(tvecs, float) - np.asarray(true_tvecs, float), axis=-1)
+    return {
+        "rotation_deg": rot.tolist(),
+        "translation_mm": trans.tolist(),
+        "rotation_deg_mean": float(rot.mean()),
+        "rotation_deg_max": float(rot.max()),
+        "translation_mm_mean": float(trans.mean()),
+        "translation_mm_max": float(trans.max()),
+    }

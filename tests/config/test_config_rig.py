@@ -1,0 +1,87 @@
+"""Rig files: validation messages, shipped configs, and the conical-spring trajectory."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from stereo_bench.config.bounds import ConfigError
+from stereo_bench.config.schema import load_rig, parse_rig
+from stereo_bench.scene.rig import Rig, spring_extent
+
+CONFIGS = sorted(p for p in Path(__file__).resolve().parents[2].joinpath("configs").rglob("*.yaml")
+                 if p.parent.name != "grids")
+QUICK = Path(__file__).resolve().parents[2] / "configs" / "quickstart.yaml"
+
+
+def quick_dict():
+    return yaml.safe_load(QUICK.read_text())
+
+
+def test_unknown_key_is_named():
+    d = quick_dict()
+    d["cameras"][0]["focal"] = 3
+    with pytest.raises(ConfigError, match=r"cameras\.0\.focal: unknown key"):
+        parse_rig(d, "x.yaml")
+
+
+def test_missing_and_wrong_type_are_named():
+    d = quick_dict()
+    del d["cameras"][1]["fx"]
+    d["trajectory"]["frames"] = "many"
+    with pytest.raises(ConfigError) as e:
+        parse_rig(d, "x.yaml")
+    msg = str(e.value)
+    assert "cameras.1.fx: missing required field" in msg
+    assert "trajectory.frames" in msg and "integer" in msg
+
+
+def test_bad_pattern_kind_and_dist_length():
+    d = quick_dict()
+    d["pattern"]["kind"] = "dots"
+    d["cameras"][0]["dist"] = [0.1]
+    with pytest.raises(ConfigError) as e:
+        parse_rig(d, "x.yaml")
+    assert "pattern.kind" in str(e.value) and "cameras.0.dist" in str(e.value)
+
+
+def test_unreadable_file(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_rig(tmp_path / "nope.yaml")
+    (tmp_path / "bad.yaml").write_text("cameras: [")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_rig(tmp_path / "bad.yaml")
+
+
+SPRINGS = [p for p in CONFIGS if load_rig(p).trajectory.kind == "spring"]
+
+
+@pytest.mark.parametrize("path", SPRINGS, ids=[p.stem for p in SPRINGS])
+def test_shipped_spring_configs_keep_the_board_in_view(path):
+    rig = Rig.from_config(load_rig(path))
+    gt = rig.ground_truth()
+    seen = gt.visible.all(axis=2)  # (C, F): whole board seen
+    # The conical spring is designed to keep the whole board in every camera's view (a
+    # studio's session is not: tests/scene/test_studio.py).
+    assert seen.mean() >= 0.95, rig.coverage(gt)
+
+
+def test_trajectory_is_a_conical_spring_facing_the_rig():
+    cfg = load_rig(QUICK)
+    rig = Rig.from_config(cfg)
+    obj = rig.pattern.object_points()
+    centre = 0.5 * (obj.min(0) + obj.max(0))
+    p = np.einsum("fij,j->fi", rig.trajectory.rotations, centre) + rig.trajectory.tvecs
+    w, h = rig.pattern.size_mm
+    depth, radii = spring_extent(rig.cameras, 0.5 * np.hypot(w, h), cfg.trajectory)
+    # Depth grows linearly along the rig axis (world z here) from near to far, and so does the
+    # radius of the helix around it.
+    assert np.allclose(p[:, 2], np.linspace(*depth, cfg.trajectory.frames))
+    semi = np.linspace(*radii, cfg.trajectory.frames)  # (F, 2) ellipse semi-axes
+    assert np.allclose(np.hypot(p[:, 0] / semi[:, 0], p[:, 1] / semi[:, 1]), 1.0)
+    # Board normal makes exactly the configured tilt with the line of sight to the rig centre.
+    normal = rig.trajectory.rotations[:, :, 2]
+    sight = p / np.linalg.norm(p, axis=1, keepdims=True)
+    angle = np.degrees(np.arccos(np.clip(np.sum(normal * sight, 1), -1, 1)))
+    assert np.allclose(angle, cfg.trajectory.tilt_deg)
