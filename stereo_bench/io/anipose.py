@@ -71,8 +71,11 @@ def write(cameras: Sequence[Camera], out_dir) -> list[Path]:
     return [write_text(Path(out_dir) / FILE, "\n".join(lines))]
 
 
-def _camera(table, key: str, where: str, mm_per_unit: float) -> Camera:
-    at = f"{where}: [{key}]"
+def table_camera(table, at: str, name: str, read_pose) -> Camera:
+    """A camera from a TOML table of aniposelib's layout (``matrix``, ``distortions`` in OpenCV's
+    order, ``size``; a ``fisheye = true`` camera refused), named ``name``, its cam_from_world
+    (rvec, tvec in mm) given by ``read_pose(table)``; ValueError naming ``at`` and the field
+    otherwise. caliscope's tables share the layout (io/caliscope.py)."""
     if not isinstance(table, dict):
         raise ValueError(f"{at}: expected a table")
     if table.get("fisheye", False):
@@ -82,9 +85,7 @@ def _camera(table, key: str, where: str, mm_per_unit: float) -> Camera:
         K = common.camera_matrix(table["matrix"], f"{at}: matrix")
         dist = common.numbers(table["distortions"], None, f"{at}: distortions")
         w, h = common.numbers(table["size"], (2,), f"{at}: size [w, h]")
-        rvec = common.numbers(table["rotation"], (3,), f"{at}: rotation")
-        tvec = common.numbers(table["translation"], (3,), f"{at}: translation")
-        name = str(table.get("name", key))
+        rvec, tvec = read_pose(table)
     except KeyError as e:
         raise ValueError(f"{at}: missing {e.args[0]!r}") from None
     except (TypeError, ValueError) as e:
@@ -93,9 +94,20 @@ def _camera(table, key: str, where: str, mm_per_unit: float) -> Camera:
         raise ValueError(f"{at}: distortions has {dist.size} coefficients; the camera core holds "
                          f"at most 8 [k1, k2, p1, p2, k3, k4, k5, k6]")
     try:
-        return Camera.from_K(name, int(w), int(h), K, dist, rvec, tvec * mm_per_unit)
+        return Camera.from_K(name, int(w), int(h), K, dist, rvec, tvec)
     except ValueError as e:
         raise ValueError(f"{at}: {e}") from None
+
+
+def _camera(table, key: str, where: str, mm_per_unit: float) -> Camera:
+    at = f"{where}: [{key}]"
+
+    def pose(t):
+        return (common.numbers(t["rotation"], (3,), f"{at}: rotation"),
+                common.numbers(t["translation"], (3,), f"{at}: translation") * mm_per_unit)
+
+    name = str(table.get("name", key)) if isinstance(table, dict) else key
+    return table_camera(table, at, name, pose)
 
 
 def read(path) -> list[Camera]:

@@ -39,7 +39,7 @@ from ..core.poses import matrix_to_rodrigues
 from ..config.bounds import MAX_FILE_BYTES
 from ..core.files import read_text, write_text
 from . import common
-from .anipose import toml_value
+from .anipose import table_camera, toml_value
 
 FORMAT = "caliscope camera_array.toml"
 FILE = "camera_array.toml"
@@ -65,41 +65,29 @@ def write(cameras: Sequence[Camera], out_dir) -> list[Path]:
 def _camera(table, key: str, where: str) -> tuple[Camera, bool]:
     """One camera of the file and whether it has a pose."""
     at = f"{where}: [{key}]"
-    if not isinstance(table, dict):
-        raise ValueError(f"{at}: expected a table")
-    if table.get("fisheye", False):
-        raise ValueError(f"{at}: a fisheye camera (cv2.fisheye's model), which the camera core "
-                         f"does not hold")
-    if table.get("rotation_count", 0):
+    if isinstance(table, dict) and table.get("rotation_count", 0):
         raise ValueError(f"{at}: rotation_count {table['rotation_count']!r}: its images were "
                          f"turned by quarter turns before detection, so its matrix is of the "
                          f"turned image; expected 0")
-    posed = table.get("rotation") is not None and table.get("translation") is not None
+    posed = isinstance(table, dict) and table.get("rotation") is not None and \
+        table.get("translation") is not None
+
+    def pose(t):
+        if not posed:
+            return np.zeros(3), np.zeros(3)
+        rotation = np.asarray(t["rotation"], dtype=object)
+        rvec = (matrix_to_rodrigues(common.rotation(t["rotation"], f"{at}: rotation"))
+                if rotation.shape == (3, 3)
+                else common.numbers(t["rotation"], (3,), f"{at}: rotation"))
+        return rvec, common.numbers(t["translation"], (3,), f"{at}: translation") * common.MM_PER_M
+
+    cam_id = (table.get("cam_id", key.rsplit(".", 1)[-1].removeprefix("cam_"))
+              if isinstance(table, dict) else key)
     try:
-        K = common.camera_matrix(table["matrix"], f"{at}: matrix")
-        dist = common.numbers(table["distortions"], None, f"{at}: distortions")
-        w, h = common.numbers(table["size"], (2,), f"{at}: size [w, h]")
-        rvec, tvec = np.zeros(3), np.zeros(3)
-        if posed:
-            rotation = np.asarray(table["rotation"], dtype=object)
-            rvec = (matrix_to_rodrigues(common.rotation(table["rotation"], f"{at}: rotation"))
-                    if rotation.shape == (3, 3)
-                    else common.numbers(table["rotation"], (3,), f"{at}: rotation"))
-            tvec = common.numbers(table["translation"], (3,), f"{at}: translation")
-    except KeyError as e:
-        raise ValueError(f"{at}: missing {e.args[0]!r}") from None
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"{at}: {e}") from None
-    if dist.size > 8:
-        raise ValueError(f"{at}: distortions has {dist.size} coefficients; the camera core holds "
-                         f"at most 8 [k1, k2, p1, p2, k3, k4, k5, k6]")
-    cam_id = table.get("cam_id", key.rsplit(".", 1)[-1].removeprefix("cam_"))
-    try:
-        camera = Camera.from_K(f"cam_{int(cam_id)}", int(w), int(h), K, dist, rvec,
-                               tvec * common.MM_PER_M)
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"{at}: {e}") from None
-    return camera, posed
+        name = f"cam_{int(cam_id)}"
+    except (TypeError, ValueError):
+        raise ValueError(f"{at}: cam_id {cam_id!r}: expected an integer") from None
+    return table_camera(table, at, name, pose), posed
 
 
 def read(path) -> list[Camera]:

@@ -8,7 +8,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-import yaml
 
 from stereo_bench.cli import main
 from stereo_bench.config.schema import parse_rig
@@ -16,6 +15,7 @@ from stereo_bench.detect.dataset import CameraDetections
 from stereo_bench.run.pipeline import run
 from stereo_bench.io.rundir import RunPaths
 from stereo_bench.calibrate.view_selection import edge_spread, select_views
+from quickstart import quickstart
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -23,8 +23,7 @@ ROOT = Path(__file__).resolve().parents[2]
 @pytest.fixture(scope="module")
 def clean(tmp_path_factory):
     """A clean stereo run of 8 frames: its left images and detections."""
-    d = yaml.safe_load((ROOT / "configs" / "quickstart.yaml").read_text())
-    d["trajectory"]["frames"] = 8
+    d = quickstart(8)
     cfg = parse_rig(d)
     tmp = tmp_path_factory.mktemp("selection")
     run(cfg, tmp / "run", ["opencv"])

@@ -16,18 +16,7 @@ from stereo_bench.multiview import colmap_ref  # noqa: E402
 from stereo_bench.multiview.colmap_ref import (colmap_rig_bundle, rig_reconstruction,  # noqa: E402
                                                to_colmap_camera)
 from stereo_bench.multiview.bundle import calibrate_rig, rig_errors, rig_start  # noqa: E402
-from studio_scene import (exact_views, intrinsics_only, noisy_views, perturbed,  # noqa: E402
-                          studio)
-
-
-@pytest.fixture(scope="module")
-def rig():
-    return studio()
-
-
-@pytest.fixture(scope="module")
-def exact(rig):
-    return exact_views(rig)
+from studio_scene import intrinsics_only, noisy_views, perturbed  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -16,17 +16,7 @@ from stereo_bench.multiview import opencv_ref as multiview_ref  # noqa: E402
 from stereo_bench.core.camera import project_points  # noqa: E402
 from stereo_bench.multiview.opencv_ref import board_unit_mm, opencv_multiview  # noqa: E402
 from stereo_bench.multiview.bundle import calibrate_rig, rig_errors, rig_start  # noqa: E402
-from studio_scene import exact_views, intrinsics_only, noisy_views, studio  # noqa: E402
-
-
-@pytest.fixture(scope="module")
-def rig():
-    return studio()
-
-
-@pytest.fixture(scope="module")
-def exact(rig):
-    return exact_views(rig)
+from studio_scene import intrinsics_only, noisy_views  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -15,6 +15,7 @@ from stereo_bench.run.capture import rig_doubts
 from stereo_bench.cli import main
 from stereo_bench.multiview.orientation import agree, symmetries
 from stereo_bench.io.rundir import RunPaths
+from quickstart import quickstart
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -169,8 +170,7 @@ def test_a_rig_its_own_figures_contradict_is_not_reported():
 def test_an_inverted_board_is_found_said_or_not(tmp_path, pattern):
     """A board printed white on black: rendered so, found in every frame the plain board is
     found in, as precisely, whether the rig file says so or not (before: 0 frames)."""
-    d = yaml.safe_load((ROOT / "configs" / "quickstart.yaml").read_text())
-    d["trajectory"]["frames"] = 6
+    d = quickstart(6)
     found = {}
     for label, extra in (("plain", {}), ("inverted", {"inverted": True})):
         d["pattern"] = {**pattern, **extra}

@@ -16,14 +16,14 @@ from browser import BROWSER, open_page, playwright, screenshot_dir
 from stereo_bench.cli import main as stereo_bench
 from stereo_bench.report.html import provenance, render_html
 from stereo_bench.core.files import write_png
+from quickstart import quickstart
 
 ROOT = Path(__file__).resolve().parents[2]
 @pytest.fixture(scope="module")
 def quick_run(tmp_path_factory):
     """The quick-start rig with 12 frames, run to the end."""
     folder = tmp_path_factory.mktemp("quick")
-    cfg = yaml.safe_load((ROOT / "configs" / "quickstart.yaml").read_text())
-    cfg["trajectory"]["frames"] = 12
+    cfg = quickstart(12)
     rig = folder / "quick.yaml"
     rig.write_text(yaml.safe_dump(cfg))
     assert stereo_bench([str(rig), "--out", str(folder / "run")]) == 0

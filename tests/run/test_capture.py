@@ -8,7 +8,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-import yaml
 
 from stereo_bench.core.camera import Camera
 from stereo_bench.run.capture import calibrate_capture
@@ -20,6 +19,7 @@ from stereo_bench.scene.image_folders import (ImageFolders, frame_key, paired_by
 from stereo_bench.core.patterns import Checkerboard
 from stereo_bench.run.pipeline import run
 from stereo_bench.io.rundir import RunPaths
+from quickstart import quickstart
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -28,8 +28,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def rendered(tmp_path_factory):
     """A small clean stereo run and the same images laid out as a user's two folders, named
     differently per camera (frames pair by their number)."""
-    d = yaml.safe_load((ROOT / "configs" / "quickstart.yaml").read_text())
-    d["trajectory"]["frames"] = 10
+    d = quickstart(10)
     cfg = parse_rig(d)
     tmp = tmp_path_factory.mktemp("capture")
     trial = run(cfg, tmp / "run", ["opencv"])[0]
@@ -152,8 +151,7 @@ def test_circle_grid_diameter_is_measured_when_not_given(tmp_path):
     """An asymmetric grid described as OpenCV describes it (4 x 11 style patternSize and its
     squareSize), the disc diameter left out: measured from the images, and the calibration
     matches the one given the true diameter."""
-    d = yaml.safe_load((ROOT / "configs" / "quickstart.yaml").read_text())
-    d["trajectory"]["frames"] = 8
+    d = quickstart(8)
     d["pattern"] = {"kind": "asymmetric_circles"}  # 10 per row x 9 rows, 9 mm discs
     cfg = parse_rig(d)
     from stereo_bench.scene.dataset import write_dataset

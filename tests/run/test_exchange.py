@@ -6,21 +6,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from pose_eval.cli import main as pose_main
 from stereo_bench.cli import main
 from stereo_bench.config.schema import parse_rig
 from stereo_bench.run.pipeline import run
 from stereo_bench.io.rundir import RunPaths
+from quickstart import quickstart
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
 def stereo_run(tmp_path_factory):
-    d = yaml.safe_load((ROOT / "configs" / "quickstart.yaml").read_text())
-    d["trajectory"]["frames"] = 12
+    d = quickstart(12)
     cfg = parse_rig(d)
     out = tmp_path_factory.mktemp("exchange") / "run"
     trial = run(cfg, out, ["opencv-radtan", "opencv"])[0]

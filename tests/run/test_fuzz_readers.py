@@ -35,6 +35,7 @@ from stereo_bench.io import FORMATS
 from stereo_bench.io.rundir import RunPaths
 
 from web_server import call, running_server
+from quickstart import quickstart
 
 ROOT = Path(__file__).resolve().parents[2]
 HANG_S = 60
@@ -147,8 +148,7 @@ def _nulls(obj, path="") -> set[str]:
 @pytest.fixture(scope="module")
 def material(tmp_path_factory):
     base = tmp_path_factory.mktemp("fuzz_readers")
-    d = yaml.safe_load((ROOT / "configs" / "quickstart.yaml").read_text())
-    d["trajectory"]["frames"] = 8
+    d = quickstart(8)
     rig = base / "rig.yaml"
     rig.write_text(yaml.safe_dump(d, sort_keys=False))
     out = base / "run"

@@ -10,13 +10,13 @@ import yaml
 from stereo_bench.cli import main
 from stereo_bench.config.schema import parse_rig
 from stereo_bench.run.pipeline import load_run, run
+from quickstart import quickstart
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def small_rig(frames=8, **changes):
-    d = yaml.safe_load((ROOT / "configs" / "quickstart.yaml").read_text())
-    d["trajectory"]["frames"] = frames
+    d = quickstart(frames)
     d.update(changes)
     return d
 

@@ -20,13 +20,13 @@ from stereo_bench.evaluate.metrics import projection_difference, validity
 from stereo_bench.run.pipeline import load_run
 from stereo_bench.io.rundir import RunLockedError, RunPaths, locked
 from stereo_bench.core.files import read_json, strict, write_json
+from quickstart import quickstart
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def small_rig(tmp_path, name="rig.yaml", frames=6, **changes) -> Path:
-    d = yaml.safe_load((ROOT / "configs" / "quickstart.yaml").read_text())
-    d["trajectory"]["frames"] = frames
+    d = quickstart(frames)
     d.update(changes)
     path = tmp_path / name
     path.write_text(yaml.safe_dump(d))
