@@ -39,10 +39,19 @@ from .uncertainty import median_board_distance, residual_sigma, worst_sigma
 TARGET_FACTOR = 2.0
 MAX_TARGETS = 3
 TILT_DEG = 35.0
-_REGIONS = (("top-left", "top", "top-right"), ("left", "centre", "right"),
+REGIONS = (("top-left", "top", "top-right"), ("left", "centre", "right"),
             ("bottom-left", "bottom", "bottom-right"))
 #: Board points must lie this far inside the image (px) for the board to count as found.
 _MARGIN_PX = 4.0
+
+
+def empty_ninths(counts) -> np.ndarray:
+    """(9,) bool, row by row: the ninths of the image (the coverage grid's feature counts, rows x
+    columns, split 3 x 3) where no feature was detected in any view."""
+    c = np.asarray(counts)
+    rows = np.array_split(np.arange(c.shape[0]), 3)
+    cols = np.array_split(np.arange(c.shape[1]), 3)
+    return np.array([c[np.ix_(r, k)].sum() == 0 for r in rows for k in cols])
 
 
 def ninth_samples(width: int, height: int) -> np.ndarray:
@@ -140,12 +149,7 @@ def suggest(camera: Camera, obs: Observations, rvecs, tvecs, parameters, board: 
     rvecs, tvecs = np.asarray(rvecs, float), np.asarray(tvecs, float)
     distance = median_board_distance(obs, rvecs, tvecs)
     samples = ninth_samples(camera.width, camera.height)
-    empty = np.zeros(9, bool)
-    if counts is not None:
-        c = np.asarray(counts)
-        rows = np.array_split(np.arange(c.shape[0]), 3)
-        cols = np.array_split(np.arange(c.shape[1]), 3)
-        empty = np.array([c[np.ix_(r, k)].sum() == 0 for r in rows for k in cols])
+    empty = np.zeros(9, bool) if counts is None else empty_ninths(counts)
     fit_sigma = residual_sigma(camera, obs, rvecs, tvecs, parameters)
     out, done = [], set()
     for _ in range(MAX_TARGETS):
@@ -181,7 +185,7 @@ def suggest(camera: Camera, obs: Observations, rvecs, tvecs, parameters, board: 
             continue
         after, axis, rvec, tvec, uv, obs, rvecs, tvecs = min(choices, key=lambda c: c[0])
         hull = cv2.convexHull(uv.astype(np.float32))[:, 0]
-        out.append({"region": _REGIONS[i // 3][i % 3], "pixel": where[i].tolist(),
+        out.append({"region": REGIONS[i // 3][i % 3], "pixel": where[i].tolist(),
                     "empty": bool(empty[i]), "sigma_px": float(sigma[i]),
                     "sigma_after_px": float(after), "sigma_best_px": best,
                     "distance_mm": float(np.linalg.norm(tvec + rodrigues_to_matrix(rvec)

@@ -44,7 +44,7 @@ from ..evaluate.metrics import projection_difference
 from ..multiview.opencv_ref import opencv_multiview
 from ..multiview.orientation import described
 from .pipeline import rig_of, rig_summary
-from ..calibrate.next_view import in_words, suggest
+from ..calibrate.next_view import REGIONS, empty_ninths, in_words, suggest
 from ..report.plots import plot_capture, primary_method
 from ..io.rundir import CapturePaths, Notes, with_outputs
 from ..core.files import strict, write_json
@@ -344,18 +344,9 @@ def _rig_warnings(rigs: dict, source: ImageFolders) -> list[str]:
 #: A method's rig baseline this far (relative) from the median of the others' is named.
 BASELINE_DISAGREEMENT = 0.02
 
-_REGIONS = (("top-left", "top", "top-right"), ("left", "centre", "right"),
-            ("bottom-left", "bottom", "bottom-right"))
-
-
 def empty_regions(counts) -> list[str]:
-    """The ninths of the image (coverage's grid of feature counts, rows x columns, split 3 x 3)
-    where no feature was detected in any view."""
-    counts = np.asarray(counts)
-    rows = np.array_split(np.arange(counts.shape[0]), 3)
-    cols = np.array_split(np.arange(counts.shape[1]), 3)
-    return [_REGIONS[i][j] for i, r in enumerate(rows) for j, c in enumerate(cols)
-            if counts[np.ix_(r, c)].sum() == 0]
+    """The ninths of the image where no feature was detected in any view, named."""
+    return [REGIONS[i // 3][i % 3] for i in np.flatnonzero(empty_ninths(counts))]
 
 
 def next_views(source: ImageFolders, estimates: dict, results: dict, given) -> dict:
