@@ -55,7 +55,6 @@ from scipy.spatial import ConvexHull, QhullError
 
 from stereo_bench.core.camera import Camera
 from stereo_bench.core.poses import compose, matrix_to_rodrigues
-from stereo_bench.core.distortion import radial_fold_radius
 from stereo_bench.config.schema import load_rig
 from stereo_bench.scene.rig import ground_axes, volume_centre, world_up
 from stereo_bench.io.rundir import RunPaths
@@ -156,7 +155,7 @@ def in_view(camera: Camera, points: np.ndarray, margin: float = 0.0) -> np.ndarr
     ahead = Pc[..., 2] > 1e-6
     xy = Pc[..., :2] / np.where(ahead, Pc[..., 2], 1.0)[..., None]
     # Beyond the fold a point still projects, but to the wrong place: it is not seen.
-    valid = np.linalg.norm(xy, axis=-1) < radial_fold_radius(camera.dist)
+    valid = np.linalg.norm(xy, axis=-1) < camera.max_normalized_radius
     uv = camera.normalized_to_pixels(xy)
     mx, my = margin * (camera.width - 1), margin * (camera.height - 1)
     inside = ((uv[..., 0] >= mx) & (uv[..., 0] <= camera.width - 1 - mx)

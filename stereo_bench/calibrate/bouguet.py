@@ -37,8 +37,9 @@ from ..core.poses import matrix_to_rodrigues
 from ..core.distortion import undistort_normalized
 from .base import CalibrationResult, Observations
 from .homography import fit_homographies
-from .lens_models import LENS_MODELS, free_coefficients, method_name
-from .refine import OpenCVModel, free_mask, refine
+from .lens_models import LENS_MODELS, core_lens, free_coefficients, method_name
+from .refine import CameraModel, free_mask, refine
+from .wide_angle import wide_angle_start
 
 KC_NAMES = ("k1", "k2", "p1", "p2", "k3")
 EST_DIST = (True, True, True, True, False)  # the toolbox's default: k3 fixed at 0
@@ -67,8 +68,11 @@ def init_focal(Hs: list[np.ndarray], cc: np.ndarray, two_focals: bool = False) -
 def extrinsic_init(camera, board_xy: list[np.ndarray], image_xy: list[np.ndarray]):
     """cam_from_board rvecs, tvecs (V, 3) of V views (board (N_i, 2) and pixels (N_i, 2) each)
     from their homographies to normalized coordinates (compute_extrinsic_init)."""
-    distorted = camera.pixels_to_distorted_normalized(np.concatenate(image_xy))
-    normalized = undistort_normalized(distorted, camera.dist)[0]
+    if camera.model == "opencv":
+        distorted = camera.pixels_to_distorted_normalized(np.concatenate(image_xy))
+        normalized = undistort_normalized(distorted, camera.dist)[0]
+    else:
+        normalized = camera.undistorted(np.concatenate(image_xy))[0]
     H = fit_homographies(board_xy, np.split(normalized, np.cumsum([len(p) for p in image_xy])[:-1]))
     # H[2, 2] > 0 keeps the board in front
     H = H / np.mean(np.linalg.norm(H[:, :, :2], axis=1), axis=1)[:, None, None]
@@ -110,7 +114,7 @@ class BouguetCalibrator:
         self.recompute_extrinsic = recompute_extrinsic
         self.max_recompute = max_recompute
         self.max_iter = max_iter
-        self.model = OpenCVModel()
+        self.model = CameraModel(core_lens(lens_model))
         free = ["fx", "fy", "cx", "cy"] + (["skew"] if est_alpha else []) + list(dist)
         self.free = free_mask(self.model.param_names, free)
         self.model_parameters = tuple(free)
@@ -128,9 +132,14 @@ class BouguetCalibrator:
         t0 = time.perf_counter()
         w, h = obs.image_size
         cc = np.array([w / 2 - 0.5, h / 2 - 0.5])  # the toolbox's ((nx-1)/2, (ny-1)/2), 0-based
-        Hs = fit_homographies([o[:, :2] for o in obs.object_points], obs.image_points)
-        fc = init_focal(Hs, cc, self.two_focals_init)
-        params = np.concatenate([fc, cc, np.zeros(9)])
+        if self.model.lens != "opencv":
+            # init_intrinsic_param's vanishing points need a pinhole: the wide lens's own start.
+            params = self.model.params_of(wide_angle_start(obs, self.model.lens)[0])
+            fc = params[:2]
+        else:
+            Hs = fit_homographies([o[:, :2] for o in obs.object_points], obs.image_points)
+            fc = init_focal(Hs, cc, self.two_focals_init)
+            params = np.concatenate([fc, cc, np.zeros(9)])
         poses = self._extrinsics(params, obs)
         rvecs, tvecs = poses.rvecs, poses.tvecs
         counts = np.array([len(p) for p in obs.image_points])

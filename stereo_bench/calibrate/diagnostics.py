@@ -55,8 +55,8 @@ import numpy as np
 from . import get_calibrator
 from .base import Observations
 from .homography import fit_homographies
-from .refine import OpenCVModel, free_mask, intrinsic_information, linearize, refine
-from .zhang import extrinsics_from_homography
+from .refine import CameraModel, free_mask, intrinsic_information, linearize, refine
+from .homography import extrinsics_from_homography
 from ..core.camera import Camera, project_points
 from ..core.poses import rodrigues_to_matrix
 from ..core.files import strict
@@ -71,7 +71,7 @@ _CALIBRATION_ERRORS = (ValueError, np.linalg.LinAlgError, RuntimeError, cv2.erro
 def view_residuals(camera: Camera, obs: Observations, rvecs, tvecs) -> list[np.ndarray]:
     """Per view (N_i, 2) px: projected - detected, through the camera and the view's pose."""
     rv, tv = check_poses(obs, rvecs, tvecs)
-    return [project_points(o, camera.intrinsics, camera.dist, r, t) - p
+    return [project_points(o, camera.intrinsics, camera.dist, r, t, camera.model) - p
             for o, p, r, t in zip(obs.object_points, obs.image_points, rv, tv)]
 
 
@@ -191,7 +191,7 @@ def residual_randomness(camera: Camera, obs: Observations, rvecs, tvecs,
     if int(n_sim) < 1:
         raise ValueError(f"n_sim: expected at least 1 simulation, got {n_sim}")
     rv, tv = check_poses(obs, rvecs, tvecs)
-    model = OpenCVModel()
+    model = CameraModel(camera.model)
     free = free_mask(model.param_names, tuple(parameters or ()))
     lin = linearize(model, model.params_of(camera), free, obs.object_points, obs.image_points,
                     rv, tv)
@@ -341,7 +341,7 @@ def heldout(method: str, obs: Observations, k: int = 5, seed: int = 0) -> dict:
                 errors[i] = f"{type(e).__name__}: {e}"
                 continue
             heldout_res[i] = project_points(o, fit.camera.intrinsics, fit.camera.dist, rvec,
-                                            tvec) - p
+                                            tvec, fit.camera.model) - p
     done = [i for i in range(n) if heldout_res[i] is not None]
     out_rms = _rms(np.concatenate([heldout_res[i] for i in done])) if done else None
     in_rms = _rms(np.concatenate([in_sample[i] for i in done])) if done else None
@@ -430,7 +430,7 @@ def _provisional_poses(obs: Observations) -> tuple[np.ndarray, np.ndarray, np.nd
     # Where f is undetermined any value shows the same degeneracy: a 53-degree field of view.
     f = _provisional_focal(Hs, obs.image_size) or float(max(w, h))
     cx, cy = (w - 1) / 2, (h - 1) / 2
-    model = OpenCVModel()
+    model = CameraModel()
     params = np.zeros(len(model.param_names))
     params[:4] = f, f, cx, cy
     rvecs, tvecs = extrinsics_from_homography(np.array([[f, 0, cx], [0, f, cy], [0, 0, 1.0]]),
@@ -472,7 +472,7 @@ def view_geometry(obs: Observations) -> dict:
     diagonal = float(np.hypot(*obs.image_size))
     out["board_span"] = float(np.median([np.linalg.norm(np.ptp(p, axis=0)) / diagonal
                                          for p in obs.image_points]))
-    model = OpenCVModel()
+    model = CameraModel()
     S = intrinsic_information(model, params, free_mask(model.param_names, PINHOLE_PARAMETERS),
                               obs.object_points, rvecs, tvecs)
     d = np.sqrt(np.maximum(np.diag(S), 0.0))

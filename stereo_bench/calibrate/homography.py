@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..core.poses import matrix_to_rodrigues, nearest_rotation
+
 
 def apply_homography(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Map points (..., N, 2) through H (..., 3, 3) (leading dimensions broadcast)."""
@@ -146,3 +148,13 @@ def fit_homographies(src: list[np.ndarray], dst: list[np.ndarray], refine: bool 
 def fit_homography(src: np.ndarray, dst: np.ndarray, refine: bool = True) -> np.ndarray:
     """H (3, 3) of one view: :func:`fit_homographies` of (N, 2) ``src`` and ``dst``."""
     return fit_homographies([src], [dst], refine)[0]
+
+
+def extrinsics_from_homography(K: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """cam_from_board (rvec, tvec) from K and H (Zhang 2000, section 3.1, rotation by SVD as in Appendix C);
+    H (..., 3, 3) gives rvec and tvec (..., 3)."""
+    A = np.linalg.solve(K, H)
+    # A[2, 2] = H[2, 2] > 0 keeps the board origin in front
+    A = A / np.linalg.norm(A[..., :, :1], axis=-2, keepdims=True)
+    Q = np.stack([A[..., 0], A[..., 1], np.cross(A[..., 0], A[..., 1])], -1)
+    return matrix_to_rodrigues(nearest_rotation(Q)), A[..., 2]

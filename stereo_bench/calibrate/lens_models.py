@@ -13,6 +13,13 @@ it frees; every other coefficient stays exactly 0:
     brown     k1, k2, p1, p2, k3           OpenCV's default 5 (Brown-Conrady)
     rational  k1, k2, p1, p2, k3, k4, k5, k6   OpenCV's CALIB_RATIONAL_MODEL 8
 
+and by the wide-angle lenses of the camera core (core/lens.py), each with all its parameters:
+
+    fisheye       Kannala-Brandt k1, k2, k3, k4     cv2.fisheye, Kalibr pinhole-equi, COLMAP
+                                                    OPENCV_FISHEYE
+    omnidir       Mei xi, k1, k2, p1, p2            cv2.omnidir, Kalibr omni-radtan
+    doublesphere  double sphere xi, alpha           Kalibr ds
+
 This module is the one place that knows the family; each calibrator maps the freed names to
 its own mechanism (a free mask for refine.py, calibrateCamera flags for OpenCV).
 """
@@ -25,7 +32,18 @@ LENS_MODELS: dict[str, tuple[str, ...]] = {
     "radtan": ("k1", "k2", "p1", "p2"),
     "brown": ("k1", "k2", "p1", "p2", "k3"),
     "rational": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
+    "fisheye": ("k1", "k2", "k3", "k4"),
+    "omnidir": ("xi", "k1", "k2", "p1", "p2"),
+    "doublesphere": ("xi", "alpha"),
 }
+# The camera core's lens model (core/lens.py) of each: OpenCV's pinhole unless named here.
+CORE_LENS = {"fisheye": "kannala_brandt", "omnidir": "mei", "doublesphere": "double_sphere"}
+PINHOLE_MODELS = tuple(m for m in LENS_MODELS if m not in CORE_LENS)
+
+
+def core_lens(lens_model: str | None) -> str:
+    """The core lens model (core/lens.py) a method fitting ``lens_model`` estimates."""
+    return CORE_LENS.get(lens_model, "opencv")
 
 
 def describe_lens_models() -> str:

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 
 from .homography import fit_homography
-from .refine import OpenCVModel, refine
-from .zhang import extrinsics_from_homography
+from .refine import CameraModel, refine
+from .homography import extrinsics_from_homography
 from ..core.camera import Camera
 from ..core.distortion import DistortionNotInvertibleError
 
@@ -32,7 +32,7 @@ def planar_pose(camera: Camera, object_points: np.ndarray, image_points: np.ndar
         xy = camera.pixels_to_distorted_normalized(image_points)
     H = fit_homography(object_points[:, :2], xy)
     rvec, tvec = extrinsics_from_homography(np.eye(3), H)
-    model = OpenCVModel()
+    model = CameraModel(camera.model)
     params = model.params_of(camera)
     res = refine(model, params, np.zeros(len(params), bool), [object_points], [image_points],
                  rvec[None], tvec[None], max_iter=20)

@@ -36,7 +36,8 @@ from typing import Protocol
 
 import numpy as np
 
-from ..core.camera import DIST_NAMES, INTRINSIC_NAMES, Camera, project_cam_with_jacobians
+from ..core.camera import INTRINSIC_NAMES, Camera, project_cam_with_jacobians
+from ..core.lens import lens_model
 from ..core.poses import matrix_to_rodrigues, rodrigues_to_matrix, rotate_jacobian
 
 
@@ -53,13 +54,17 @@ class ProjectionModel(Protocol):
         ...
 
 
-class OpenCVModel:
-    """The camera core's model: params [fx, fy, cx, cy, skew, k1, k2, p1, p2, k3, k4, k5, k6]."""
+class CameraModel:
+    """The camera core's model: params [fx, fy, cx, cy, skew] followed by the parameters of the
+    lens model ``lens`` (core/lens.py; OpenCV's k1, k2, p1, p2, k3, k4, k5, k6 by default)."""
 
-    param_names = INTRINSIC_NAMES + DIST_NAMES
+    def __init__(self, lens: str = "opencv"):
+        self.lens = lens
+        self.param_names = INTRINSIC_NAMES + lens_model(lens).param_names
 
     def project(self, params, points_cam, jacobians=True):
-        uv, J = project_cam_with_jacobians(points_cam, params[:5], params[5:], jacobians)
+        uv, J = project_cam_with_jacobians(points_cam, params[:5], params[5:], jacobians,
+                                           self.lens)
         if not jacobians:
             return uv, None, None
         return uv, np.concatenate([J["intrinsics"], J["dist"]], -1), J["point"]
@@ -68,10 +73,10 @@ class OpenCVModel:
     def params_of(camera: Camera) -> np.ndarray:
         return np.concatenate([camera.intrinsics, camera.dist])
 
-    @staticmethod
-    def camera(params: np.ndarray, name: str, image_size: tuple[int, int]) -> Camera:
+    def camera(self, params: np.ndarray, name: str, image_size: tuple[int, int]) -> Camera:
         fx, fy, cx, cy, skew = params[:5]
-        return Camera(name, image_size[0], image_size[1], fx, fy, cx, cy, skew, params[5:13])
+        return Camera(name, image_size[0], image_size[1], fx, fy, cx, cy, skew, params[5:],
+                      model=self.lens)
 
 
 def free_mask(param_names: tuple[str, ...], free_names) -> np.ndarray:

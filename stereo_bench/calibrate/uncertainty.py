@@ -35,13 +35,10 @@ from typing import Sequence
 import numpy as np
 
 from .base import Observations
-from .refine import OpenCVModel, free_mask, linearize, rank_info
+from .refine import CameraModel, free_mask, linearize, rank_info
 from ..core.camera import POSE_NAMES, Camera
 from ..core.poses import rodrigues_to_matrix, rotate_jacobian
 from ..core.files import strict
-
-_MODEL = OpenCVModel()
-
 
 def check_poses(obs: Observations, rvecs, tvecs) -> tuple[np.ndarray, np.ndarray]:
     """(rvecs, tvecs) as (V, 3) float arrays, or a ValueError naming the one that is not one
@@ -54,21 +51,22 @@ def check_poses(obs: Observations, rvecs, tvecs) -> tuple[np.ndarray, np.ndarray
     return rv, tv
 
 
-def _free(parameters) -> np.ndarray:
+def _free(camera: Camera, parameters) -> np.ndarray:
     if parameters is None:
-        raise ValueError("parameters: the method's model is not a subset of the OpenCV model "
+        raise ValueError("parameters: the method's model is not a subset of the camera core's "
                          "(model_parameters is None); its covariance cannot be expressed in it")
-    return free_mask(_MODEL.param_names, tuple(parameters))
+    return free_mask(CameraModel(camera.model).param_names, tuple(parameters))
 
 
 def _linearized(camera: Camera, obs: Observations, rvecs, tvecs, parameters):
     """(linearization of refine.py, free parameter names, sigma^2, degrees of freedom)."""
     rv, tv = check_poses(obs, rvecs, tvecs)
-    free = _free(parameters)
+    free = _free(camera, parameters)
     if tuple(camera.size) != tuple(obs.image_size):
         raise ValueError(f"camera {camera.name!r} is {camera.width}x{camera.height} but the "
                          f"observations' image_size is {obs.image_size}")
-    lin = linearize(_MODEL, _MODEL.params_of(camera), free, obs.object_points, obs.image_points,
+    model = CameraModel(camera.model)
+    lin = linearize(model, model.params_of(camera), free, obs.object_points, obs.image_points,
                     rv, tv)
     r = lin["residuals"]
     dof = r.size - int(free.sum()) - 6 * obs.n_views
@@ -76,7 +74,7 @@ def _linearized(camera: Camera, obs: Observations, rvecs, tvecs, parameters):
         raise ValueError(f"observations of {obs.camera_name!r}: {r.size} residuals for "
                          f"{int(free.sum())} intrinsics and {6 * obs.n_views} pose parameters; "
                          f"the noise variance needs more residuals than parameters")
-    names = [n for n, f in zip(_MODEL.param_names, free) if f]
+    names = [n for n, f in zip(model.param_names, free) if f]
     return lin, names, float(np.sum(r * r)) / dof, dof
 
 
@@ -107,7 +105,8 @@ def parameter_covariance(camera: Camera, obs: Observations, rvecs, tvecs,
     d = np.where(std > 0, std, 1.0)
     correlation = cov / np.outer(d, d)
     pose_std = np.sqrt(sigma2 * np.diagonal(_pose_covariances(lin), axis1=1, axis2=2))
-    values = dict(zip(_MODEL.param_names, _MODEL.params_of(camera)))
+    model = CameraModel(camera.model)
+    values = dict(zip(model.param_names, model.params_of(camera)))
     return strict({
         "parameters": names,
         "values": {n: values[n] for n in names},
@@ -172,11 +171,12 @@ def reprojection_jacobian(camera: Camera, rvecs, tvecs, uv, distance_mm: float,
     """Linearization of :func:`reprojected` at the estimate: (q (M, 2), dq/d intrinsics
     (M, 2, F) over ``parameters`` in OpenCV-model order, dq/d poses (M, V, 2, 6) over each view's
     [rvec, tvec])."""
-    free = _free(parameters)
+    free = _free(camera, parameters)
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     rv, tv = np.asarray(rvecs, dtype=np.float64), np.asarray(tvecs, dtype=np.float64)
     p = _points_at(camera, uv, distance_mm)
-    q, J_params, J_point = _MODEL.project(_MODEL.params_of(camera), p)
+    model = CameraModel(camera.model)
+    q, J_params, J_point = model.project(model.params_of(camera), p)
     R = rodrigues_to_matrix(rv)
     boards = np.einsum("vji,mvj->vmi", R, p[:, None, :] - tv[None])  # (V, M, 3)
     # p+ = mean_i (R_i+ b_i + t_i+): d p+ / d rvec_i = d(R_i b_i)/d rvec_i / V, d p+/d t_i = I / V

@@ -9,8 +9,11 @@ Z. Zhang, "A flexible new technique for camera calibration", IEEE PAMI 22(11), 2
 3. extrinsics from K^-1 H (section 3.1), the rotation made orthogonal by SVD (Appendix C);
 4. radial k1, k2 by linear least squares on the residual pixels (section 3.3, eq. 13);
 5. maximum-likelihood refinement of all parameters and poses (eq. 14) through ``refine.py``,
-   with Zhang's model: OpenCVModel with only fx, fy, cx, cy, skew, k1, k2 free (``zhang``), or
+   with Zhang's model: CameraModel with only fx, fy, cx, cy, skew, k1, k2 free (``zhang``), or
    with another lens model's coefficients free instead of k1, k2 (``zhang-brown`` etc.).
+   A fisheye or omnidirectional model (``zhang-fisheye``, ``zhang-omnidir``,
+   ``zhang-doublesphere``) replaces steps 1-4, which hold for a pinhole lens only, by the start
+   of that model's paper (wide_angle.py); step 5 is the same.
 
 Skew gamma is estimated by default, as in the paper; ``zero_skew=True`` imposes gamma = 0 with
 Zhang's extra constraint B12 = 0 (section 3.1) and keeps it fixed in the refinement. Estimating
@@ -25,11 +28,12 @@ import time
 import numpy as np
 
 from ..core.camera import Camera, project_points
-from ..core.poses import matrix_to_rodrigues, nearest_rotation, rodrigues_to_matrix
+from ..core.poses import rodrigues_to_matrix
 from .base import CalibrationResult, Observations
-from .homography import fit_homographies
-from .lens_models import LENS_MODELS, free_coefficients, method_name
-from .refine import OpenCVModel, free_mask, refine
+from .homography import extrinsics_from_homography, fit_homographies
+from .lens_models import LENS_MODELS, core_lens, free_coefficients, method_name
+from .refine import CameraModel, free_mask, refine
+from .wide_angle import wide_angle_start
 
 
 def _v(H: np.ndarray, i: int, j: int) -> np.ndarray:
@@ -76,16 +80,6 @@ def intrinsics_from_homographies(Hs: np.ndarray, image_size, zero_skew: bool) ->
     return np.linalg.solve(N, K_scaled)
 
 
-def extrinsics_from_homography(K: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """cam_from_board (rvec, tvec) from K and H (section 3.1, rotation by SVD as in Appendix C);
-    H (..., 3, 3) gives rvec and tvec (..., 3)."""
-    A = np.linalg.solve(K, H)
-    # A[2, 2] = H[2, 2] > 0 keeps the board origin in front
-    A = A / np.linalg.norm(A[..., :, :1], axis=-2, keepdims=True)
-    Q = np.stack([A[..., 0], A[..., 1], np.cross(A[..., 0], A[..., 1])], -1)
-    return matrix_to_rodrigues(nearest_rotation(Q)), A[..., 2]
-
-
 def radial_from_linear(K, rvecs, tvecs, obs: Observations) -> np.ndarray:
     """k1, k2 from eq. 13: (u_obs - u) = (u - u0) [r^2 r^4] k on ideal (undistorted) projections."""
     counts = [len(o) for o in obs.object_points]
@@ -114,16 +108,20 @@ class ZhangCalibrator:
         self.max_iter = max_iter
         dist = free_coefficients("radial2" if lens_model is None else lens_model)
         self.model_parameters = ("fx", "fy", "cx", "cy", *dist) + (() if zero_skew else ("skew",))
+        self.lens = core_lens(lens_model)
 
     def calibrate(self, obs: Observations) -> CalibrationResult:
         t0 = time.perf_counter()
-        Hs = fit_homographies([o[:, :2] for o in obs.object_points], obs.image_points)
-        K = intrinsics_from_homographies(Hs, obs.image_size, self.zero_skew)
-        rvecs, tvecs = extrinsics_from_homography(K, Hs)
-        initial = Camera.from_K(obs.camera_name, *obs.image_size, K,
-                                radial_from_linear(K, rvecs, tvecs, obs))
-
-        model = OpenCVModel()
+        if self.lens != "opencv":
+            # A wide lens maps no plane by a homography: its model's own start (wide_angle.py).
+            initial, rvecs, tvecs, _ = wide_angle_start(obs, self.lens)
+        else:
+            Hs = fit_homographies([o[:, :2] for o in obs.object_points], obs.image_points)
+            K = intrinsics_from_homographies(Hs, obs.image_size, self.zero_skew)
+            rvecs, tvecs = extrinsics_from_homography(K, Hs)
+            initial = Camera.from_K(obs.camera_name, *obs.image_size, K,
+                                    radial_from_linear(K, rvecs, tvecs, obs))
+        model = CameraModel(self.lens)
         res = refine(model, model.params_of(initial),
                      free_mask(model.param_names, self.model_parameters),
                      obs.object_points, obs.image_points, rvecs, tvecs, max_iter=self.max_iter)

@@ -14,6 +14,9 @@ Pinhole camera with OpenCV's distortion model and conventions:
       yd = y radial + p1 (r2 + 2 y^2) + 2 p2 x y
       u = fx xd + skew yd + cx,   v = fy yd + cy
 
+or, with ``model`` set, a fisheye or omnidirectional lens of lens.py in place of the distortion,
+followed by the same (fx, fy, cx, cy, skew).
+
 Every projection function has its analytic Jacobian beside it (tested against finite
 differences). Unprojection inverts the distortion by Newton's method to 1e-10 px and refuses
 distortions that are not invertible over the image (a fold of the radial map inside it).
@@ -22,6 +25,7 @@ distortions that are not invertible over the image (a fold of the radial map ins
 from __future__ import annotations
 
 
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -29,9 +33,9 @@ import numpy as np
 from .files import read_json, write_json
 from .distortion import (DistortionNotInvertibleError, distort, distort_with_jacobians,
                          radial_fold_radius, undistort_to)
+from .lens import DIST_NAMES, kb_max_theta, lens_model, lens_parameters
 from .poses import rodrigues_to_matrix, rotate_jacobian
 
-DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "skew")
 POSE_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
 
@@ -56,19 +60,38 @@ def project_points(
     dist: np.ndarray,
     rvec: np.ndarray,
     tvec: np.ndarray,
+    model: str = "opencv",
 ) -> np.ndarray:
     """Project 3D points (N,3) through pose (rvec, tvec) and intrinsics [fx, fy, cx, cy, skew]."""
-    return project_with_jacobians(points, intrinsics, dist, rvec, tvec, jacobians=False)[0]
+    return project_with_jacobians(points, intrinsics, dist, rvec, tvec, jacobians=False,
+                                  model=model)[0]
+
+
+def _lens_project_cam(Pc, intrinsics, params, jacobians, model):
+    """project_cam_with_jacobians for a lens model of lens.py other than OpenCV's."""
+    fx, fy, cx, cy, s = np.asarray(intrinsics, dtype=np.float64)
+    m, _, Jm, Jp = lens_model(model).project(Pc, np.asarray(params, dtype=np.float64), jacobians)
+    uv = np.stack([fx * m[:, 0] + s * m[:, 1] + cx, fy * m[:, 1] + cy], -1)
+    if not jacobians:
+        return uv, None
+    Ji = np.zeros((len(Pc), 2, 5))
+    Ji[:, 0, 0], Ji[:, 1, 1], Ji[:, 0, 2], Ji[:, 1, 3], Ji[:, 0, 4] = m[:, 0], m[:, 1], 1, 1, m[:, 1]
+    KJ = np.array([[fx, s], [0.0, fy]])
+    return uv, {"point": KJ @ Jm, "intrinsics": Ji, "dist": KJ @ Jp}
 
 
 def project_cam_with_jacobians(points_cam: np.ndarray, intrinsics: np.ndarray, dist: np.ndarray,
-                               jacobians: bool = True):
+                               jacobians: bool = True, model: str = "opencv"):
     """Project points already in the camera frame (N,3): pixels (N,2) plus, if asked, a dict of
     Jacobians ``point`` (N,2,3) over the camera-frame point, ``intrinsics`` (N,2,5) and ``dist``
-    (N,2,8). What a calibration's inner loop needs (its board points are put in the camera frame
-    by its own pose step); ``project_with_jacobians`` adds the pose. The 2x2 and 2x3 products
-    are written out entry by entry: small broadcast matrix products cost more than the math."""
+    (N,2,k) over the lens model's k parameters (lens.py; OpenCV's 8 by default). What a
+    calibration's inner loop needs (its board points are put in the camera frame by its own pose
+    step); ``project_with_jacobians`` adds the pose. For OpenCV's model, the 2x2 and 2x3
+    products are written out entry by entry: small broadcast matrix products cost more than the
+    math, and it is the model of every hot loop."""
     Pc = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
+    if model != "opencv":
+        return _lens_project_cam(Pc, intrinsics, dist, jacobians, model)
     fx, fy, cx, cy, s = np.asarray(intrinsics, dtype=np.float64)
     inv_z = 1.0 / Pc[:, 2]
     xy = Pc[:, :2] * inv_z[:, None]
@@ -104,16 +127,17 @@ def project_with_jacobians(
     rvec: np.ndarray,
     tvec: np.ndarray,
     jacobians: bool = True,
+    model: str = "opencv",
 ):
     """Project points (N,3) and return pixels (N,2) plus, if asked, a dict of Jacobians.
 
     Jacobians: ``point`` (N,2,3), ``intrinsics`` (N,2,5) over [fx, fy, cx, cy, skew],
-    ``dist`` (N,2,8), ``pose`` (N,2,6) over [rvec, tvec].
+    ``dist`` (N,2,k) over the lens model's parameters, ``pose`` (N,2,6) over [rvec, tvec].
     """
     P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     R = rodrigues_to_matrix(rvec)
     Pc = P @ R.T + np.asarray(tvec, dtype=np.float64)
-    uv, J = project_cam_with_jacobians(Pc, intrinsics, dist, jacobians)
+    uv, J = project_cam_with_jacobians(Pc, intrinsics, dist, jacobians, model)
     if not jacobians:
         return uv, None
     J_uv_Pc = J["point"]
@@ -135,7 +159,10 @@ def _vec(values, n: int, name: str) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class Camera:
-    """A calibrated camera: image size, intrinsics, OpenCV distortion and cam_from_world."""
+    """A calibrated camera: image size, intrinsics, lens and cam_from_world.
+
+    ``dist`` holds the parameters of the lens ``model`` (lens.py), OpenCV's 8 coefficients by
+    default; every projection and unprojection goes through the model."""
 
     name: str
     width: int
@@ -148,6 +175,7 @@ class Camera:
     dist: np.ndarray = field(default_factory=lambda: np.zeros(8))
     rvec: np.ndarray = field(default_factory=lambda: np.zeros(3))  # cam_from_world rotation
     tvec: np.ndarray = field(default_factory=lambda: np.zeros(3))  # cam_from_world translation, mm
+    model: str = "opencv"
 
     def __post_init__(self):
         if int(self.width) <= 0 or int(self.height) <= 0:
@@ -157,10 +185,10 @@ class Camera:
             raise ValueError(f"camera {self.name!r}: fx and fy must be positive, got "
                              f"{self.fx}, {self.fy}")
         d = np.asarray(self.dist, dtype=np.float64).reshape(-1)
-        if d.size > 8:
+        if self.model == "opencv" and d.size > 8:
             raise ValueError(f"camera {self.name!r}: dist has {d.size} coefficients, expected "
                              f"at most 8 {list(DIST_NAMES)}")
-        object.__setattr__(self, "dist", np.concatenate([d, np.zeros(8 - d.size)]))
+        object.__setattr__(self, "dist", lens_parameters(self.model, d, f"camera {self.name!r}"))
         object.__setattr__(self, "rvec", _vec(self.rvec, 3, f"camera {self.name!r}: rvec"))
         object.__setattr__(self, "tvec", _vec(self.tvec, 3, f"camera {self.name!r}: tvec"))
         object.__setattr__(self, "width", int(self.width))
@@ -192,14 +220,33 @@ class Camera:
     def size(self) -> tuple[int, int]:
         return (self.width, self.height)
 
+    @property
+    def dist_names(self) -> tuple[str, ...]:
+        """The names of the lens model's parameters, in the order of ``dist``."""
+        return lens_model(self.model).param_names
+
+    @property
+    def max_normalized_radius(self) -> float:
+        """Radius of (X/Z, Y/Z) beyond which a ray in front of the camera has no unique pixel
+        (OpenCV's radial fold; a fisheye's field of view when under 180 degrees); inf where
+        the model's limit is not a cone about the axis (the omnidirectional models say per
+        ray)."""
+        if self.model == "opencv":
+            return radial_fold_radius(self.dist)
+        if self.model == "kannala_brandt":
+            theta = kb_max_theta(tuple(self.dist.tolist()))
+            return math.tan(theta) if theta < math.pi / 2 else math.inf
+        return math.inf
+
     def with_params(self, **changes) -> "Camera":
         return replace(self, **changes)
 
     @classmethod
-    def from_K(cls, name, width, height, K, dist=(), rvec=(0, 0, 0), tvec=(0, 0, 0)):
+    def from_K(cls, name, width, height, K, dist=(), rvec=(0, 0, 0), tvec=(0, 0, 0),
+               model="opencv"):
         K = np.asarray(K, dtype=np.float64)
         return cls(name, width, height, K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1],
-                   np.asarray(dist, dtype=np.float64), np.asarray(rvec), np.asarray(tvec))
+                   np.asarray(dist, dtype=np.float64), np.asarray(rvec), np.asarray(tvec), model)
 
     # --- geometry ---------------------------------------------------------------------------
     def world_to_cam(self, points: np.ndarray) -> np.ndarray:
@@ -209,19 +256,44 @@ class Camera:
     def project(self, points_world: np.ndarray) -> np.ndarray:
         """World points (..., 3) -> pixels (..., 2), with distortion."""
         P = np.asarray(points_world, dtype=np.float64)
-        uv = project_points(P.reshape(-1, 3), self.intrinsics, self.dist, self.rvec, self.tvec)
+        uv = project_points(P.reshape(-1, 3), self.intrinsics, self.dist, self.rvec, self.tvec,
+                            self.model)
         return uv.reshape(P.shape[:-1] + (2,))
 
     def project_cam(self, points_cam: np.ndarray) -> np.ndarray:
         """Camera-frame points (..., 3) -> pixels (..., 2)."""
         P = np.asarray(points_cam, dtype=np.float64)
+        if self.model != "opencv":
+            uv = project_cam_with_jacobians(P.reshape(-1, 3), self.intrinsics, self.dist, False,
+                                            self.model)[0]
+            return uv.reshape(P.shape[:-1] + (2,))
         return self.normalized_to_pixels(P[..., :2] / P[..., 2:3])
 
+    def sees(self, points_cam: np.ndarray) -> np.ndarray:
+        """(...,) bool: the camera-frame points (..., 3) lie where the lens projects one to
+        one (in front of a pinhole camera inside its fold; inside a fisheye's field of view)."""
+        P = np.asarray(points_cam, dtype=np.float64)
+        flat = P.reshape(-1, 3)
+        valid = lens_model(self.model).project(flat, self.dist, False)[1]
+        return valid.reshape(P.shape[:-1])
+
     def normalized_to_pixels(self, xy: np.ndarray) -> np.ndarray:
-        """Undistorted normalized coordinates (..., 2) -> distorted pixels (..., 2)."""
+        """Undistorted normalized coordinates (..., 2) (the ray (x, y, 1)) -> pixels (..., 2)."""
+        xy = np.asarray(xy, dtype=np.float64)
+        if self.model != "opencv":
+            return self.project_cam(np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], -1))
         xd = distort(xy, self.dist)
         return np.stack([self.fx * xd[..., 0] + self.skew * xd[..., 1] + self.cx,
                          self.fy * xd[..., 1] + self.cy], -1)
+
+    def normalized_jacobian(self, xy: np.ndarray) -> np.ndarray:
+        """d pixels / d (x, y) (N, 2, 2) at undistorted normalized coordinates xy (N, 2)."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        if self.model == "opencv":
+            return self.K[:2, :2] @ distort_with_jacobians(xy, self.dist, wrt_dist=False)[1]
+        P = np.concatenate([xy, np.ones((len(xy), 1))], -1)
+        J = project_cam_with_jacobians(P, self.intrinsics, self.dist, True, self.model)[1]
+        return J["point"][:, :, :2]
 
     def pixels_to_distorted_normalized(self, uv: np.ndarray) -> np.ndarray:
         uv = np.asarray(uv, dtype=np.float64)
@@ -229,16 +301,34 @@ class Camera:
         xd = (uv[..., 0] - self.cx - self.skew * yd) / self.fx
         return np.stack([xd, yd], -1)
 
-    def _undistorted(self, uv: np.ndarray, tol_px: float) -> tuple[np.ndarray, np.ndarray]:
+    def undistorted(self, uv: np.ndarray, tol_px: float = 1e-10) -> tuple[np.ndarray, np.ndarray]:
         """(undistorted normalized xy (..., 2), valid (...)): valid where Newton's iteration
-        converged inside the radial fold, i.e. where the pixel has exactly one ray."""
-        return undistort_to(uv, self.dist, tol_px / max(self.fx, self.fy), 50,
-                          self.pixels_to_distorted_normalized, radial_fold_radius(self.dist))
+        converged inside the radial fold, i.e. where the pixel has exactly one ray (for other
+        lens models, a ray in front of the camera's plane)."""
+        if self.model == "opencv":
+            return undistort_to(uv, self.dist, tol_px / max(self.fx, self.fy), 50,
+                                self.pixels_to_distorted_normalized, radial_fold_radius(self.dist))
+        rays, valid = self.rays(uv)
+        valid &= rays[..., 2] > 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return rays[..., :2] / rays[..., 2:], valid
+
+    def rays(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(unit rays (..., 3), valid (...)) of pixels (..., 2) through the lens model."""
+        uv = np.asarray(uv, dtype=np.float64)
+        m = self.pixels_to_distorted_normalized(uv.reshape(-1, 2))
+        rays, valid = lens_model(self.model).unproject(m, self.dist)
+        return rays.reshape(uv.shape[:-1] + (3,)), valid.reshape(uv.shape[:-1])
+
+    def has_ray(self, uv: np.ndarray) -> np.ndarray:
+        """(...,) bool: the pixel (..., 2) sees along one ray (outside a circular fisheye's
+        image circle, or beyond a fold, it does not)."""
+        return self.rays(uv)[1]
 
     def invertible(self, uv: np.ndarray, tol_px: float = 1e-10) -> np.ndarray:
         """(...,) bool: the pixel (..., 2) has a unique ray (an estimated distortion can fold
         or have a pole inside the image, TRAPS.md)."""
-        return self._undistorted(uv, tol_px)[1]
+        return self.undistorted(uv, tol_px)[1]
 
     def unproject(self, uv: np.ndarray, tol_px: float = 1e-10) -> np.ndarray:
         """Pixels (..., 2) -> undistorted normalized coordinates (..., 2) (rays (x, y, 1)).
@@ -246,7 +336,7 @@ class Camera:
         Newton's iteration to ``tol_px`` in pixels. Raises DistortionNotInvertibleError when a
         pixel lies beyond the fold of the radial distortion or the iteration does not converge.
         """
-        xy, valid = self._undistorted(uv, tol_px)
+        xy, valid = self.undistorted(uv, tol_px)
         if not np.all(valid):
             bad = ~valid
             where = np.asarray(uv)[bad][0]
@@ -258,7 +348,17 @@ class Camera:
         return xy
 
     def unproject_rays(self, uv: np.ndarray) -> np.ndarray:
-        """Pixels (..., 2) -> unit ray directions in the camera frame (..., 3)."""
+        """Pixels (..., 2) -> unit ray directions in the camera frame (..., 3); beyond 90
+        degrees off axis for the lens models that see there."""
+        if self.model != "opencv":
+            rays, valid = self.rays(uv)
+            if not np.all(valid):
+                where = np.asarray(uv)[~valid][0]
+                raise DistortionNotInvertibleError(
+                    f"camera {self.name!r}: pixel ({where[0]:.1f}, {where[1]:.1f}) has no ray "
+                    f"through the {self.model} lens {self.dist.tolist()} "
+                    f"({int((~valid).sum())} pixels)")
+            return rays
         xy = self.unproject(uv)
         d = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], -1)
         return d / np.linalg.norm(d, axis=-1, keepdims=True)
@@ -281,28 +381,31 @@ class Camera:
 
     # --- serialization ----------------------------------------------------------------------
     def to_dict(self) -> dict:
+        lens = {} if self.model == "opencv" else {"model": self.model}
         return {
             "name": self.name, "width": self.width, "height": self.height,
             "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "skew": self.skew,
-            "dist": dict(zip(DIST_NAMES, self.dist.tolist())),
+            **lens, "dist": dict(zip(self.dist_names, self.dist.tolist())),
             "cam_from_world": {"rvec": self.rvec.tolist(), "tvec_mm": self.tvec.tolist()},
         }
 
     @classmethod
     def from_dict(cls, d: dict, source: str = "camera") -> "Camera":
         try:
+            model = str(d.get("model", "opencv"))
+            names = lens_model(model).param_names
             dist = d.get("dist", {})
             if isinstance(dist, dict):
-                unknown = set(dist) - set(DIST_NAMES)
+                unknown = set(dist) - set(names)
                 if unknown:
-                    raise ValueError(f"unknown distortion coefficients {sorted(unknown)}; "
-                                     f"expected {list(DIST_NAMES)}")
-                dist = [float(dist.get(k, 0.0)) for k in DIST_NAMES]
+                    raise ValueError(f"unknown coefficients {sorted(unknown)} of the {model} "
+                                     f"lens; expected {list(names)}")
+                dist = [float(dist.get(k, 0.0)) for k in names]
             pose = d.get("cam_from_world", {})
             return cls(str(d["name"]), int(d["width"]), int(d["height"]), float(d["fx"]),
                        float(d["fy"]), float(d["cx"]), float(d["cy"]), float(d.get("skew", 0.0)),
                        np.asarray(dist, dtype=np.float64), pose.get("rvec", [0, 0, 0]),
-                       pose.get("tvec_mm", [0, 0, 0]))
+                       pose.get("tvec_mm", [0, 0, 0]), model)
         except KeyError as e:
             raise ValueError(f"{source}: missing field {e.args[0]!r}") from None
         except (TypeError, ValueError) as e:

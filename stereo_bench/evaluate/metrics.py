@@ -23,7 +23,6 @@ from scipy.optimize import least_squares
 from ..core.camera import (DIST_NAMES, INTRINSIC_NAMES, Camera, project_points,
                            project_with_jacobians)
 from ..core.poses import geodesic_distance, rodrigues_to_matrix
-from ..core.distortion import radial_fold_radius
 
 PAPER_PARAMS = ("fx", "fy", "cx", "cy") + DIST_NAMES
 
@@ -31,7 +30,7 @@ PAPER_PARAMS = ("fx", "fy", "cx", "cy") + DIST_NAMES
 def rpe_rms(camera: Camera, rvecs, tvecs, object_points, image_points) -> float:
     """RPE_RMS (px) of board views: per view (N_i, 3) board points and (N_i, 2) detections, with
     cam_from_board poses rvecs, tvecs (V, 3) and the camera's intrinsics and distortion."""
-    squared = [np.sum((project_points(o, camera.intrinsics, camera.dist, r, t) - p) ** 2, axis=1)
+    squared = [np.sum((project_points(o, camera.intrinsics, camera.dist, r, t, camera.model) - p) ** 2, axis=1)
                for o, p, r, t in zip(object_points, image_points, rvecs, tvecs)]
     return float(np.sqrt(np.mean(np.concatenate(squared))))
 
@@ -74,7 +73,7 @@ def projection_difference_map(estimate: Camera, truth: Camera,
 def _valid(estimate: Camera, uv: np.ndarray, true_rays: np.ndarray) -> np.ndarray:
     """Pixels whose true ray lies inside the estimate's radial fold and that have one ray
     through the estimate: where comparing the two projections means something."""
-    return ((np.linalg.norm(true_rays, axis=-1) < radial_fold_radius(estimate.dist))
+    return ((np.linalg.norm(true_rays, axis=-1) < estimate.max_normalized_radius)
             & estimate.invertible(uv))
 
 
@@ -86,7 +85,7 @@ def validity(estimate: Camera, grid: tuple[int, int] = (64, 48)) -> dict:
     it are meaningless there."""
     uv = _grid(estimate, grid)
     ok = estimate.invertible(uv)
-    fold = radial_fold_radius(estimate.dist)
+    fold = estimate.max_normalized_radius
     return {"valid_fraction": float(ok.mean()), "fold_radius": fold if np.isfinite(fold) else None,
             "usable": bool(ok.all())}
 
@@ -128,10 +127,11 @@ def projection_difference(estimate: Camera, truth: Camera, grid: tuple[int, int]
     zero = np.zeros(3)
 
     def residuals(rvec):
-        return (project_points(rays, estimate.intrinsics, estimate.dist, rvec, zero) - uv).ravel()
+        return (project_points(rays, estimate.intrinsics, estimate.dist, rvec, zero, estimate.model) - uv).ravel()
 
     def jacobian(rvec):
-        J = project_with_jacobians(rays, estimate.intrinsics, estimate.dist, rvec, zero)[1]
+        J = project_with_jacobians(rays, estimate.intrinsics, estimate.dist, rvec, zero,
+                                   model=estimate.model)[1]
         return J["pose"][:, :, :3].reshape(-1, 3)
 
     direct = np.linalg.norm(residuals(zero).reshape(-1, 2), axis=1)

@@ -40,7 +40,7 @@ from scipy.optimize import least_squares
 from threadpoolctl import threadpool_limits
 
 from ..calibrate.base import MIN_POINTS_PER_VIEW
-from ..core.camera import (DIST_NAMES, INTRINSIC_NAMES, Camera, project_points,
+from ..core.camera import (INTRINSIC_NAMES, Camera, project_points,
                            project_with_jacobians)
 from ..core.poses import (compose, geodesic_distance, invert, matrix_to_rodrigues, nearest_rotation,
                           rodrigues_to_matrix, rotate_jacobian)
@@ -135,14 +135,18 @@ def initial_rig(board_R: np.ndarray, board_t: np.ndarray, seen: np.ndarray,
 # Joint refinement
 # ----------------------------------------------------------------------------------------------
 
-MODEL_PARAMETERS = INTRINSIC_NAMES + DIST_NAMES  # a camera's intrinsics as the adjustment sees them
+
+
+def model_parameters(camera: Camera) -> tuple[str, ...]:
+    """A camera's intrinsics as the adjustment sees them: INTRINSIC_NAMES then its lens's."""
+    return INTRINSIC_NAMES + camera.dist_names
 
 
 class _RigProblem:
     """Residuals and sparse Jacobian of the rig's reprojection errors.
 
     x = [cam_from_cam0 (rvec, tvec) of cameras 1..C-1, the free intrinsics of each camera in
-    turn (``free[c]``, a mask over MODEL_PARAMETERS), cam0_from_board of each used frame].
+    turn (``free[c]``, a mask over model_parameters(camera)), cam0_from_board of each used frame].
     Residuals are ordered camera by camera, observation by observation, (u, v).
     """
 
@@ -179,14 +183,15 @@ class _RigProblem:
         return np.concatenate([p[m] for p, m in zip(self.params0, self.free)])
 
     def unpack(self, x):
-        """(rig poses (C, 6), per-camera model parameters (C, 13), board poses (F, 6))."""
+        """(rig poses (C, 6), per-camera model parameters (5 intrinsics + the camera's lens
+        parameters each), board poses (F, 6))."""
         rig = np.vstack([np.zeros(6), x[: self.n_rig].reshape(-1, 6)])
         params = []
         for c, (p, m) in enumerate(zip(self.params0, self.free)):
             p = p.copy()
             p[m] = x[self.intr_at[c]: self.intr_at[c + 1]]
             params.append(p)
-        return rig, np.array(params), x[self.n_head:].reshape(-1, 6)
+        return rig, params, x[self.n_head:].reshape(-1, 6)
 
     def evaluate(self, x, jacobian: bool):
         rig, params, boards = self.unpack(x)
@@ -197,8 +202,9 @@ class _RigProblem:
                                  np.broadcast_to(np.eye(3), Y.shape + (3,))], axis=-1)
         res, data = [], []
         for c in range(self.C):
-            uv, J = project_with_jacobians(Y[self.valid[c]], params[c, :5], params[c, 5:],
-                                           rig[c, :3], rig[c, 3:], jacobians=jacobian)
+            uv, J = project_with_jacobians(Y[self.valid[c]], params[c][:5], params[c][5:],
+                                           rig[c, :3], rig[c, 3:], jacobians=jacobian,
+                                           model=self.cameras[c].model)
             res.append((uv - self.obs[c]).ravel())
             if jacobian:
                 blocks = [J["point"] @ dY[self.valid[c]]]
@@ -256,7 +262,8 @@ def reprojection_rms(cameras: Sequence[Camera], object_points, image_points, boa
         for f in np.flatnonzero(np.asarray(observed[c]).any(-1)):
             Rc, tc = compose(cam.R, cam.tvec, R0b[f], t0b[f])
             pts = observed[c, f]
-            uv = project_points(obj[pts], cam.intrinsics, cam.dist, matrix_to_rodrigues(Rc), tc)
+            uv = project_points(obj[pts], cam.intrinsics, cam.dist, matrix_to_rodrigues(Rc), tc,
+                                cam.model)
             e.append(np.sum((uv - image_points[c, f, pts]) ** 2, axis=-1))
         e = np.concatenate(e) if e else np.zeros(0)
         squares.append(e)
@@ -351,7 +358,7 @@ def calibrate_rig(
     cam_from_board, NaN where not found. found (C, F) bool, optional (default: finite pose).
     A camera sees a frame if found, its pose is finite and it detected at least
     MIN_POINTS_PER_VIEW points. ``tolerance`` is least_squares' ftol, xtol and gtol.
-    refine_intrinsics: per camera the names (of MODEL_PARAMETERS) to adjust with the rig, or
+    refine_intrinsics: per camera the names (of model_parameters(camera)) to adjust with the rig, or
     None to keep that camera's intrinsics; None for all: intrinsics fixed. ``loss`` and
     ``loss_scale_px``: least_squares' robust loss and f_scale.
     """
@@ -366,16 +373,17 @@ def calibrate_rig(
         raise ValueError(f"image_points: expected N={len(obj)} points per frame (object_points),"
                          f" got {img.shape[2]}")
     seen, names = start.seen, [cam.name for cam in cameras]
-    free = [np.zeros(len(MODEL_PARAMETERS), bool) if not refine_intrinsics or not p else
-            np.isin(MODEL_PARAMETERS, list(p)) for p in (refine_intrinsics or [None] * C)]
-    if len(free) != C:
+    parameters = [model_parameters(cam) for cam in cameras]
+    free = [np.zeros(len(n), bool) if not refine_intrinsics or not p else np.isin(n, list(p))
+            for n, p in zip(parameters, refine_intrinsics or [None] * C)]
+    if refine_intrinsics is not None and len(refine_intrinsics) != C:
         raise ValueError(f"refine_intrinsics: expected one entry per camera ({C}), got "
-                         f"{len(free)}")
-    for p in refine_intrinsics or []:
-        unknown = set(p or []) - set(MODEL_PARAMETERS)
+                         f"{len(refine_intrinsics)}")
+    for p, n in zip(refine_intrinsics or [], parameters):
+        unknown = set(p or []) - set(n)
         if unknown:
             raise ValueError(f"refine_intrinsics: unknown parameters {sorted(unknown)}; "
-                             f"expected some of {MODEL_PARAMETERS}")
+                             f"expected some of {n}")
 
     # A frame one camera saw constrains only that camera's intrinsics (and its own pose).
     used = seen.sum(axis=0) >= (1 if any(m.any() for m in free) else 2)
@@ -405,8 +413,8 @@ def calibrate_rig(
     board_rvecs_out, board_tvecs_out = np.full((F, 3), np.nan), np.full((F, 3), np.nan)
     board_rvecs_out[frames], board_tvecs_out[frames] = boards[:, :3], boards[:, 3:]
     return RigCalibration(
-        cameras=[cam.with_params(**{n: float(v) for n, v in zip(INTRINSIC_NAMES, params[c, :5])},
-                                 dist=params[c, 5:], rvec=rig[c, :3], tvec=rig[c, 3:])
+        cameras=[cam.with_params(**{n: float(v) for n, v in zip(INTRINSIC_NAMES, params[c][:5])},
+                                 dist=params[c][5:], rvec=rig[c, :3], tvec=rig[c, 3:])
                  for c, cam in enumerate(cameras)],
         board_rvecs=board_rvecs_out, board_tvecs=board_tvecs_out, frames_used=used,
         rms_px=rms, rms_px_per_camera=rms_per, iterations=int(sol.njev),
@@ -414,8 +422,8 @@ def calibrate_rig(
         log={"initial_rms_px": rms0, "nfev": int(sol.nfev), "status": int(sol.status),
              "message": sol.message, "n_observations": int(valid.sum()), "loss": loss,
              "loss_scale_px": loss_scale_px,
-             "refined_intrinsics": {n: [p for p, f in zip(MODEL_PARAMETERS, m) if f]
-                                    for n, m in zip(names, free) if m.any()},
+             "refined_intrinsics": {n: [p for p, f in zip(ps, m) if f]
+                                    for n, ps, m in zip(names, parameters, free) if m.any()},
              "covisibility": covisibility(seen),
              "initialization": start.log})
 

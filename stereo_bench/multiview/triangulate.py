@@ -237,7 +237,8 @@ def refine_points(
         """Cost (K,), gradient (K,3) and Gauss-Newton matrix (K,3,3) at points Xs of idx."""
         cost, g, H = np.zeros(len(idx)), np.zeros((len(idx), 3)), np.zeros((len(idx), 3, 3))
         for c, cam in enumerate(cameras):
-            proj, jac = project_with_jacobians(Xs, cam.intrinsics, cam.dist, cam.rvec, cam.tvec)
+            proj, jac = project_with_jacobians(Xs, cam.intrinsics, cam.dist, cam.rvec, cam.tvec,
+                                                model=cam.model)
             wc = w[c, idx]
             r = np.where(wc[:, None] > 0, proj - uv[c, idx], 0.0)
             e2 = np.sum(r * r, axis=-1)

@@ -47,7 +47,6 @@ import numpy as np
 
 from ..core.board_shape import BoardShape
 from ..core.camera import Camera
-from ..core.distortion import distort_with_jacobians, radial_fold_radius
 from ..core.poses import rodrigues_to_matrix
 from .imaging import (MAX_MOTION_SUBFRAMES, Light, Motion, Optics, Sensor, blinn_phong, defocus,
                       expose, vignetting_gain)
@@ -58,6 +57,8 @@ _PAD = 2           # background texels around every texture (also absorbs perspe
                    # (0, 0) answer for rays parallel to the plane)
 _CELL = 32         # px, coarse grid used to find the board's image region and footprint
 _OUTLINE_POINTS = 1024  # samples per outline edge when locating the board's image region
+_NO_RAY = 1e7      # normalized coordinate of a pixel that sees no board: a ray 1e-7 rad off
+_NO_RAY_Z = 1e-6   # the camera's plane, which meets a board 1 m away 10 km off (the background)
 _MAX_DEPTH_SLOPE = 2e-3  # per px: interpolating texel coordinates is accurate to 5e-4 px below
 _LEVELS_PER_OCTAVE = 4
 _LEVELS_KEPT = 4   # texture levels cached per renderer (<= 4 x 32 MiB at the default cap)
@@ -134,22 +135,41 @@ class PixelRays:
     (Newton to 1e-10 px); float32 storage rounds by at most 3e-8 (1e-4 px at f = 3000 px).
     ``node_xy`` (h, w, 2) float64: exact rays of a coarse grid of pixels (every ``_CELL`` px,
     clamped to the image), to locate the board per frame.
+
+    A fisheye or omnidirectional lens (lens.py) has pixels without a ray (outside its image
+    circle: ``dark`` (H, W) marks them, painted black as the lens leaves them) and pixels whose
+    ray points behind the camera's plane; both get a normalized coordinate far outside any
+    board's image (``_NO_RAY``), so they show the background.
     """
 
     def __init__(self, camera: Camera, chunk_points: int = 1 << 15):
         self.camera = camera
         W, H = camera.width, camera.height
-        self.fold_radius = radial_fold_radius(camera.dist)
+        self.fold_radius = camera.max_normalized_radius
         u = np.arange(-1, W + 1, dtype=np.float64)
         self.xy = np.empty((H + 2, W + 2, 2), dtype=np.float32)
+        has_ray = np.ones((H + 2, W + 2), dtype=bool)
         rows = max(1, chunk_points // len(u))
         for r0 in range(0, H + 2, rows):
             v = np.arange(r0 - 1, min(r0 + rows, H + 2) - 1, dtype=np.float64)
             uv = np.stack(np.meshgrid(u, v), -1)
-            self.xy[r0:r0 + len(v)] = camera.unproject(uv)
+            self.xy[r0:r0 + len(v)], has_ray[r0:r0 + len(v)] = self._normalized(uv)
+        self.dark = None if has_ray[1:-1, 1:-1].all() else ~has_ray[1:-1, 1:-1]
         nodes_u = np.minimum(np.arange(0, W - 1 + _CELL, _CELL), W - 1)
         nodes_v = np.minimum(np.arange(0, H - 1 + _CELL, _CELL), H - 1)
-        self.node_xy = camera.unproject(np.stack(np.meshgrid(nodes_u, nodes_v), -1).astype(float))
+        self.node_xy = self._normalized(np.stack(np.meshgrid(nodes_u, nodes_v), -1)
+                                        .astype(float))[0]
+
+    def _normalized(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(normalized coordinates (..., 2), has a ray (...)) of pixels (..., 2)."""
+        cam = self.camera
+        if cam.model == "opencv":
+            return cam.unproject(uv), np.ones(uv.shape[:-1], dtype=bool)
+        rays, has_ray = cam.rays(uv)
+        ahead = has_ray & (rays[..., 2] > _NO_RAY_Z)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xy = np.where(ahead[..., None], rays[..., :2] / rays[..., 2:], _NO_RAY)
+        return xy, has_ray
 
 
 @dataclass(frozen=True)
@@ -210,7 +230,7 @@ class AnalyticRenderer:
         canvas = np.full((H, W), round(st.background * 256), dtype=np.uint16)
         if len(poses) == 1:
             strips = self._draw_board(canvas, R, t)
-            return self._finish(canvas, strips, rng, R, t)
+            return self._finish(self._surround(canvas), strips, rng, R, t)
         # The mean of the sub-frames, accumulated only where they draw (each one's strips are
         # disjoint bands of rows): background + mean of (sub-frame - background).
         background = np.float32(round(st.background * 256))
@@ -224,7 +244,13 @@ class AnalyticRenderer:
             strips += drawn
         total *= np.float32(1 / len(poses))
         total += background
-        return self._finish(total, strips, rng, R, t)
+        return self._finish(self._surround(total), strips, rng, R, t)
+
+    def _surround(self, image: np.ndarray) -> np.ndarray:
+        """The image with the pixels that have no ray (a circular fisheye's surround) black."""
+        if self.rays.dark is not None:
+            image[self.rays.dark] = 0
+        return image
 
     def _exposure_poses(self, R, t, velocity) -> list[tuple[np.ndarray, np.ndarray]]:
         """The sub-frame poses of the exposure: [(R, t)] without motion, else enough evenly
@@ -383,9 +409,7 @@ class AnalyticRenderer:
         J_board = (B[None, :2, :2] * q[:, 2, None, None]
                    - q[:, :2, None] * B[None, 2, None, :2]) / q[:, 2, None, None] ** 2
         cam = self.camera
-        _, J_dist, _ = distort_with_jacobians(xy, cam.dist)
-        J_pix = np.array([[cam.fx, cam.skew], [0.0, cam.fy]]) @ J_dist
-        J = J_board @ inverse_2x2(J_pix)
+        J = J_board @ inverse_2x2(cam.normalized_jacobian(xy))
         # Largest singular value of each 2x2, in closed form (batched SVD is 10x slower).
         frob = np.sum(J * J, axis=(1, 2))
         det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]

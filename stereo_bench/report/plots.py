@@ -95,7 +95,7 @@ def residuals(trial: TrialPaths, ds: Dataset, method: str, camera: Camera) -> np
     z = read_arrays(trial.views(method, camera.name), "a calibration's views")
     for f, r, t in zip(z["view_ids"], z["rvecs"], z["tvecs"]):
         ok = np.isfinite(det.points[f]).all(1)
-        uv = project_points(ds.object_points[ok], est.intrinsics, est.dist, r, t)
+        uv = project_points(ds.object_points[ok], est.intrinsics, est.dist, r, t, est.model)
         out.append(np.linalg.norm(uv - det.points[f, ok], axis=1))
     return np.concatenate(out) if out else np.zeros(0)
 
@@ -380,7 +380,7 @@ def plot_capture_camera(results: dict, est, frame_names: list[str], path: Path) 
 
     ax = axes[0, 1]
     uv = np.concatenate(obs.image_points)
-    proj = np.concatenate([project_points(o, cam.intrinsics, cam.dist, r, t) for o, r, t in
+    proj = np.concatenate([project_points(o, cam.intrinsics, cam.dist, r, t, cam.model) for o, r, t in
                            zip(obs.object_points, est.result.rvecs, est.result.tvecs)])
     res = uv - proj
     norm = np.linalg.norm(res, axis=1)

@@ -22,7 +22,6 @@ import numpy as np
 from ..core.board_shape import BoardShape
 from ..core.camera import Camera
 from ..core.poses import matrix_to_rodrigues, rodrigues_to_matrix
-from ..core.distortion import radial_fold_radius
 from ..config.schema import RigConfig, TrajectoryConfig
 from ..core.patterns import pattern_from_config
 
@@ -386,7 +385,7 @@ class Rig:
             z = Pc[..., 2]
             ahead = z > 1e-6
             xy = Pc[..., :2] / np.where(ahead, z, 1.0)[..., None]
-            valid = np.linalg.norm(xy, axis=-1) < radial_fold_radius(cam.dist)
+            valid = np.linalg.norm(xy, axis=-1) < cam.max_normalized_radius
             uv = cam.normalized_to_pixels(xy)
             inside = ((uv[..., 0] >= 0) & (uv[..., 0] <= cam.width - 1)
                       & (uv[..., 1] >= 0) & (uv[..., 1] <= cam.height - 1))

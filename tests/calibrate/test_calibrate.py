@@ -11,7 +11,7 @@ import pytest
 from scipy.stats import chi2
 
 from stereo_bench.calibrate import Observations, available_methods, get_calibrator
-from stereo_bench.calibrate.refine import (OpenCVModel, _Problem, free_mask, intrinsic_information,
+from stereo_bench.calibrate.refine import (CameraModel, _Problem, free_mask, intrinsic_information,
                                            refine)
 from stereo_bench.core.camera import Camera
 from stereo_bench.core.poses import matrix_to_rodrigues, rodrigues_to_matrix
@@ -21,7 +21,7 @@ RECT = Camera("rect", 4096, 3072, 3000, 3000, 2048, 1536, 0, [0.05, 0.02, 0.001]
 WIDE = Camera("wide", 640, 480, 600, 450, 320, 240, 0, [0.5, 0.1, 0.03])
 RECT_K1K2 = RECT.with_params(dist=np.array([0.05, 0.02]))
 WIDE_K1K2 = WIDE.with_params(dist=np.array([0.5, 0.1]))
-MODEL = OpenCVModel()
+MODEL = CameraModel()
 
 
 def board_points(cols=11, rows=8, spacing=15.0):
@@ -84,7 +84,7 @@ def test_observations_reject_bad_input():
 
 
 def test_refine_jacobians_match_finite_differences():
-    """OpenCVModel's parameter Jacobian and the pose chain rule through rotate_jacobian."""
+    """CameraModel's parameter Jacobian and the pose chain rule through rotate_jacobian."""
     obs, rvecs, tvecs = views(WIDE, n_views=3)
     problem = _Problem(MODEL, np.ones(13, bool), obs.object_points, obs.image_points)
     params = MODEL.params_of(WIDE) + np.r_[0, 0, 0, 0, 0.5, np.full(8, 0.01)]

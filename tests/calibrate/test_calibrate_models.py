@@ -16,7 +16,7 @@ from pydantic import ValidationError
 from pose_eval.cli import calib_choice
 from stereo_bench.calibrate import (available_methods, check_methods, get_calibrator, is_method,
                                     parse_method)
-from stereo_bench.calibrate.lens_models import LENS_MODELS
+from stereo_bench.calibrate.lens_models import LENS_MODELS, PINHOLE_MODELS
 from stereo_bench.cli import _methods
 from stereo_bench.evaluate.metrics import projection_difference
 from stereo_bench.core.files import is_safe_name
@@ -26,14 +26,16 @@ from test_calibrate import MODEL, RECT, WIDE, views
 BROWN_RECT = RECT.with_params(dist=np.array([0.05, 0.02, 0.001, -0.0015, 0.03]))
 BROWN_WIDE = WIDE.with_params(dist=np.array([0.5, 0.1, 0.03, -0.01, 0.05]))
 LENS_BASES = ("zhang", "bouguet", "opencv")
-VARIANTS = [f"{b}-{m}" for b in LENS_BASES for m in LENS_MODELS]
+# The pinhole family; the wide-angle models have their own views (test_wide_angle.py).
+VARIANTS = [f"{b}-{m}" for b in LENS_BASES for m in PINHOLE_MODELS]
 INTRINSICS = ("fx", "fy", "cx", "cy")
 EXPECTED_FREE = {"zhang": INTRINSICS + ("k1", "k2", "skew"),
                  "bouguet": INTRINSICS + ("k1", "k2", "p1", "p2"),
                  "opencv": INTRINSICS + ("k1", "k2", "p1", "p2", "k3"),
                  "opencv-rational": INTRINSICS + LENS_MODELS["rational"]}
 for _b in LENS_BASES:
-    for _m, _dist in LENS_MODELS.items():
+    for _m in PINHOLE_MODELS:
+        _dist = LENS_MODELS[_m]
         EXPECTED_FREE[f"{_b}-{_m}"] = INTRINSICS + _dist + (("skew",) if _b == "zhang" else ())
 
 
@@ -69,9 +71,12 @@ def test_refused_names_say_why():
     with pytest.raises(ValueError, match=r"tsai-brown'?: tsai fits Tsai's own model \(k1 radial"
                                          r".*lens models apply to zhang, bouguet, opencv"):
         get_calibrator("tsai-brown")
-    with pytest.raises(ValueError, match="unknown lens model 'fisheye'.*radial2 .*brown "
-                                         r"\(k1 k2 p1 p2 k3\).*rational"):
-        get_calibrator("zhang-fisheye")
+    with pytest.raises(ValueError, match="unknown lens model 'fish'.*radial2 .*brown "
+                                         r"\(k1 k2 p1 p2 k3\).*rational.*fisheye"):
+        get_calibrator("zhang-fish")
+    with pytest.raises(ValueError, match="opencv-doublesphere'?: opencv fits lens models "
+                                         "radial2.*fisheye, omnidir$"):
+        get_calibrator("opencv-doublesphere")
     with pytest.raises(ValueError, match="unknown calibration method 'matlab-brown'; available: "
                                          "zhang, tsai.*BASE-MODEL.*zhang, bouguet, opencv.*"
                                          "radial2.*radial3.*brown.*rational"):

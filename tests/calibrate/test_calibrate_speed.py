@@ -7,14 +7,14 @@ import cv2
 import numpy as np
 
 from stereo_bench.calibrate.homography import apply_homography, fit_homographies, fit_homography
-from stereo_bench.calibrate.refine import OpenCVModel, _Problem, _schur, free_mask, refine
+from stereo_bench.calibrate.refine import CameraModel, _Problem, _schur, free_mask, refine
 from stereo_bench.core.camera import Camera
 from stereo_bench.core.poses import rodrigues_to_matrix, matrix_to_rodrigues
 
 from test_calibrate import synthetic_views
 
 RECT = Camera("rect", 4096, 3072, 3000, 3000, 2048, 1536, 0, [0.05, 0.02, 0.001])
-MODEL = OpenCVModel()
+MODEL = CameraModel()
 
 
 def uneven_views(n_views=12, sigma=0.5, seed=3):
@@ -88,8 +88,9 @@ def test_left_increment_jacobian_matches_finite_differences_and_keeps_the_schur_
     assert np.abs((S_local - S_rvec) / np.outer(d, d)).max() < 1e-9
 
 
-class CountingModel(OpenCVModel):
+class CountingModel(CameraModel):
     def __init__(self):
+        super().__init__()
         self.calls = 0
 
     def project(self, params, points_cam, jacobians=True):

@@ -22,7 +22,7 @@ from scipy.stats import chi2
 from test_calibrate import observe, synthetic_views
 
 from stereo_bench.calibrate import get_calibrator
-from stereo_bench.calibrate.refine import OpenCVModel, free_mask, linearize
+from stereo_bench.calibrate.refine import CameraModel, free_mask, linearize
 from stereo_bench.core.camera import Camera
 from stereo_bench.calibrate.uncertainty import (median_board_distance, parameter_covariance,
                                                 projection_covariance, projection_uncertainty,
@@ -31,7 +31,7 @@ from stereo_bench.calibrate.uncertainty import (median_board_distance, parameter
 CAM = Camera("unc", 640, 480, 520, 520, 322, 238, 0, [0.1, -0.05, 0.001, -0.001, 0.0])
 OPENCV = get_calibrator("opencv")
 PARAMS = OPENCV.model_parameters  # fx fy cx cy k1 k2 p1 p2 k3
-MODEL = OpenCVModel()
+MODEL = CameraModel()
 FREE = free_mask(MODEL.param_names, PARAMS)
 SIGMA = 0.3
 # centre, two corners, an edge and a point between the boards and a corner
