@@ -14,9 +14,13 @@ Pixel convention: COLMAP puts the centre of the top-left pixel at (0.5, 0.5), Op
 suite at (0, 0); cx and cy are shifted by ``PIXEL_SHIFT`` = +0.5 on writing and -0.5 on reading
 (the conversions of colmap_ref.py, the suite's COLMAP reference, used here).
 
+A Kannala-Brandt lens (cv2.fisheye's, core/lens.py) is written and read as OPENCV_FISHEYE
+(fx fy cx cy k1 k2 k3 k4); the other wide-angle lenses have no COLMAP model and are refused.
+
 Read: any folder in that layout (``points3D.txt`` is not needed), or a pycolmap.Reconstruction
-(:func:`from_reconstruction`). Models SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV and
-FULL_OPENCV are read exactly (each is a special case of the camera core's); any other model, a
+(:func:`from_reconstruction`). Models SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV,
+FULL_OPENCV and OPENCV_FISHEYE are read exactly (each is a special case of the camera core's);
+any other model, a
 camera with no image or with more than one, is refused with a ValueError naming it.
 """
 
@@ -30,6 +34,7 @@ from typing import Sequence
 import numpy as np
 
 from ..core.camera import DIST_NAMES, Camera
+from ..core.lens import lens_model
 from ..core.poses import matrix_to_rodrigues
 from ..core.files import read_text, write_text
 from . import common
@@ -47,7 +52,12 @@ MODELS = {
     "RADIAL": ("f", "cx", "cy", "k1", "k2"),
     "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
     "FULL_OPENCV": ("fx", "fy", "cx", "cy") + DIST_NAMES,
+    "OPENCV_FISHEYE": ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"),
 }
+#: The camera core's lens model (core/lens.py) of each, OpenCV's pinhole unless named here.
+#: COLMAP's OPENCV_FISHEYE is cv2.fisheye's Kannala-Brandt projection.
+LENSES = {"OPENCV_FISHEYE": "kannala_brandt"}
+CARRIED_LENSES = ("opencv", "kannala_brandt")
 
 
 PIXEL_SHIFT = 0.5  # COLMAP pixel coordinate = OpenCV pixel coordinate + PIXEL_SHIFT
@@ -61,13 +71,19 @@ def opencv_to_colmap_pixels(uv: np.ndarray) -> np.ndarray:
 def colmap_model(camera: Camera) -> tuple[str, np.ndarray]:
     """(COLMAP model name, params) of a project Camera, principal point in COLMAP's convention.
 
-    OPENCV when k3..k6 are zero, else FULL_OPENCV. Raises ValueError for skew != 0.
+    OPENCV when k3..k6 are zero, else FULL_OPENCV; OPENCV_FISHEYE for a Kannala-Brandt lens.
+    Raises ValueError for skew != 0 or another lens model.
     """
     if camera.skew != 0:
         raise ValueError(f"camera {camera.name!r}: skew {camera.skew!r} is not 0; COLMAP's "
-                         f"OPENCV and FULL_OPENCV models have no skew")
+                         f"OPENCV, FULL_OPENCV and OPENCV_FISHEYE models have no skew")
     pinhole = [camera.fx, camera.fy, camera.cx + PIXEL_SHIFT, camera.cy + PIXEL_SHIFT]
     d = camera.dist
+    if camera.model == "kannala_brandt":
+        return "OPENCV_FISHEYE", np.array(pinhole + d.tolist())
+    if camera.model != "opencv":
+        raise ValueError(f"camera {camera.name!r}: COLMAP has no model of the {camera.model} "
+                         f"lens; it carries {' and '.join(CARRIED_LENSES)} lenses")
     if not np.any(d[4:]):
         return "OPENCV", np.array(pinhole + d[:4].tolist())
     return "FULL_OPENCV", np.array(pinhole + d.tolist())
@@ -76,7 +92,7 @@ def colmap_model(camera: Camera) -> tuple[str, np.ndarray]:
 def from_colmap_camera(colmap_camera, camera: Camera) -> Camera:
     """The project Camera ``camera`` with the intrinsics of a pycolmap.Camera (pose unchanged)."""
     p = np.asarray(colmap_camera.params, dtype=np.float64)
-    dist = np.zeros(8)
+    dist = np.zeros(len(camera.dist))
     dist[: len(p) - 4] = p[4:]
     return camera.with_params(fx=float(p[0]), fy=float(p[1]), cx=float(p[2]) - PIXEL_SHIFT,
                               cy=float(p[3]) - PIXEL_SHIFT, dist=dist)
@@ -124,10 +140,12 @@ def camera_from_model(name: str, model: str, width: int, height: int, params,
     v = dict(zip(names, p.tolist()))
     if "f" in v:
         v["fx"] = v["fy"] = v["f"]
+    lens = LENSES.get(model, "opencv")
     try:
         return Camera(name, width, height, v["fx"], v["fy"], v["cx"] - PIXEL_SHIFT,
-                      v["cy"] - PIXEL_SHIFT, 0.0, np.array([v.get(k, 0.0) for k in DIST_NAMES]),
-                      rvec, tvec)
+                      v["cy"] - PIXEL_SHIFT, 0.0,
+                      np.array([v.get(k, 0.0) for k in lens_model(lens).param_names]),
+                      rvec, tvec, lens)
     except ValueError as e:
         raise ValueError(f"{where}: {e}") from None
 
@@ -138,7 +156,7 @@ def camera_from_model(name: str, model: str, width: int, height: int, params,
 
 def write(cameras: Sequence[Camera], out_dir) -> list[Path]:
     """Write the rig as a COLMAP text model in ``out_dir`` (module notes)."""
-    cameras = common.rig(cameras, FORMAT)
+    cameras = common.rig(cameras, FORMAT, lenses=CARRIED_LENSES)
     models = []
     for cam in cameras:
         common.refuse_name(cam, FORMAT, "non-blank characters without whitespace (COLMAP's "
@@ -238,7 +256,7 @@ def _snapshot(cams: dict, images: list[tuple], where: str) -> list[Camera]:
                              f"rig snapshot has exactly one image per camera (its pose)")
     if not out:
         raise ValueError(f"{where}: no cameras")
-    return common.rig(out, where)
+    return common.rig(out, where, lenses=CARRIED_LENSES)
 
 
 def read(path) -> list[Camera]:

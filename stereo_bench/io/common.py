@@ -28,11 +28,13 @@ MM_PER_M = 1000.0
 ROTATION_TOLERANCE = 1e-6
 
 
-def rig(cameras: Sequence[Camera], fmt: str, min_count: int = 1, posed: bool = True
-        ) -> list[Camera]:
+def rig(cameras: Sequence[Camera], fmt: str, min_count: int = 1, posed: bool = True,
+        lenses: Sequence[str] = ("opencv",)) -> list[Camera]:
     """The cameras as a list, refused (ValueError naming the entry) unless they are at least
-    ``min_count`` stereo_bench Cameras with distinct names, plausible, and (``posed``: they are
-    a rig, not cameras known for their intrinsics only) with distinct centres."""
+    ``min_count`` stereo_bench Cameras with distinct names, plausible, with a lens model the
+    format carries (``lenses``, core/lens.py: a fisheye written as a pinhole would be read back
+    as another camera), and (``posed``: they are a rig, not cameras known for their intrinsics
+    only) with distinct centres."""
     if isinstance(cameras, Camera):
         cameras = [cameras]
     cameras = list(cameras)
@@ -48,6 +50,9 @@ def rig(cameras: Sequence[Camera], fmt: str, min_count: int = 1, posed: bool = T
         raise ValueError(f"{fmt}: camera names must be distinct, {duplicated} repeat")
     for cam in cameras:
         plausible(cam, fmt)
+        if cam.model not in lenses:
+            raise ValueError(f"{fmt}: camera {cam.name!r}: a {cam.model} lens; the format "
+                             f"carries {' and '.join(lenses)} lenses only")
     centres = np.array([cam.center for cam in cameras])
     for a in range(len(cameras) if posed else 0):
         for b in range(a + 1, len(cameras)):
@@ -88,7 +93,7 @@ def plausible(camera: Camera, where: str) -> None:
                              f"{-size}..{2 * size} px of an image {size} px wide")
     worst = int(np.argmax(np.abs(camera.dist)))
     if abs(camera.dist[worst]) > MAX_DISTORTION:
-        raise ValueError(f"{at}: {DIST_NAMES[worst]} = {float(camera.dist[worst])!r}; expected "
+        raise ValueError(f"{at}: {camera.dist_names[worst]} = {float(camera.dist[worst])!r}; expected "
                          f"coefficients of magnitude at most {MAX_DISTORTION:g}")
     if np.linalg.norm(camera.tvec) > MAX_DISTANCE_MM:
         raise ValueError(f"{at}: translation {camera.tvec.tolist()} mm; expected a camera "

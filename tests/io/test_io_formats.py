@@ -182,6 +182,26 @@ def test_colmap_model_matches_pycolmap(tmp_path):
     assert_same_rig(colmap.read(tmp_path / "by_colmap"), cams, X)
 
 
+def test_colmap_opencv_fisheye_is_the_kannala_brandt_lens_for_pycolmap(tmp_path):
+    pycolmap = pytest.importorskip("pycolmap")
+    rng = np.random.default_rng(6)
+    cams = random_rig(rng, [4, 4], ["pinhole", "fisheye"])
+    cams[1] = cams[1].with_params(model="kannala_brandt", dist=[0.03, -0.01, 0.004, -0.0008],
+                                  fx=0.5 * cams[1].fx, fy=0.5 * cams[1].fy)
+    colmap.write(cams, tmp_path)
+    X = random_points(rng)
+    back = colmap.read(tmp_path)
+    assert back[1].model == "kannala_brandt"
+    assert_same_rig(back, cams, X)
+    rec = pycolmap.Reconstruction(str(tmp_path))
+    assert rec.cameras[2].model.name == "OPENCV_FISHEYE"
+    image = next(i for i in rec.images.values() if i.camera_id == 2)
+    pose = image.cam_from_world()
+    Xc = X @ np.asarray(pose.rotation.matrix()).T + np.asarray(pose.translation)
+    uv = np.asarray(rec.cameras[2].img_from_cam(Xc)) - colmap.PIXEL_SHIFT
+    assert max_dpx(uv, cams[1].project(X)) < TOL_PX
+
+
 def test_colmap_reads_the_models_it_holds_exactly(tmp_path):
     (tmp_path / "cameras.txt").write_text("1 SIMPLE_RADIAL 640 480 500 320.5 240.5 0.1\n"
                                           "2 PINHOLE 640 480 500 510 300.5 200.5\n")
@@ -449,6 +469,10 @@ def test_load_and_export_name_what_they_cannot_handle(tmp_path):
     ("kalibr", {"dist": [0.1, 0.01, 0, 0, 0.003]}, "k3 = 0.003 is not 0; Kalibr's radtan"),
     ("easymocap", {"dist": [0.1, 0.01, 0, 0, 0.003, 0.02]}, "k4 = 0.02 is not 0; EasyMocap"),
     ("colmap", {"name": "left cam"}, "without whitespace"),
+    *[(fmt, {"model": "mei", "dist": [0.9, 0.1, 0, 0, 0]}, "a mei lens; the format carries")
+      for fmt in ("kalibr", "easymocap", "anipose", "caliscope", "mrcal", "opencv")],
+    ("colmap", {"model": "double_sphere", "dist": [0.1, 0.6]},
+     "double_sphere lens; the format carries opencv and kannala_brandt"),
     ("easymocap", {"name": "cam.1"}, "letters, digits"),
 ])
 def test_formats_refuse_what_they_cannot_hold(tmp_path, fmt, change, match):
@@ -469,8 +493,8 @@ def test_opencv_stereo_refuses_skew_the_single_file_keeps_it(tmp_path):
 
 MALFORMED = [
     ("colmap", "cameras.txt", "1 OPENCV 640\n", r"cameras.txt:1: expected CAMERA_ID"),
-    ("colmap", "cameras.txt", "1 OPENCV_FISHEYE 640 480 1 2 3 4 0 0 0 0\n",
-     r"cameras.txt:1: camera model OPENCV_FISHEYE is not one of"),
+    ("colmap", "cameras.txt", "1 THIN_PRISM_FISHEYE 640 480 1 2 3 4 0 0 0 0 0 0 0 0\n",
+     r"cameras.txt:1: camera model THIN_PRISM_FISHEYE is not one of"),
     ("kalibr", "camchain.yaml", "cam0:\n  camera_model: pinhole\n",
      r"camchain.yaml: cam0: missing 'distortion_model'"),
     ("kalibr", "camchain.yaml", "cam0:\n  camera_model: omni\n  distortion_model: radtan\n"
