@@ -15,6 +15,7 @@ from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, Strict, Vali
                       field_validator, model_validator)
 
 from ..core.camera import Camera
+from ..core.lens import lens_parameters
 from ..core.poses import look_at_rotation, matrix_to_rodrigues
 from ..core.files import is_safe_name
 from .bounds import (ConfigError, MAX_BLUR_PX, MAX_BOARD_MM, MAX_CAMERAS, MAX_DISTANCE_MM,
@@ -57,7 +58,9 @@ class _Strict(BaseModel):
 
 
 class LensConfig(_Strict):
-    """A camera's image and lens: intrinsics and OpenCV distortion (px)."""
+    """A camera's image and lens: intrinsics (px) and the ``lens`` model's parameters ``dist``
+    (core/lens.py): OpenCV's [k1, k2, p1, p2, k3, k4, k5, k6] (4 to 8 of them) by default;
+    kannala_brandt [k1, k2, k3, k4]; mei [xi, k1, k2, p1, p2]; double_sphere [xi, alpha]."""
 
     width: Int = Field(ge=2, le=MAX_IMAGE_SIDE)
     height: Int = Field(ge=2, le=MAX_IMAGE_SIDE)
@@ -66,17 +69,28 @@ class LensConfig(_Strict):
     cx: Float
     cy: Float
     skew: Float = Field(0.0, ge=-MAX_SKEW_PX, le=MAX_SKEW_PX)
+    lens: Literal["opencv", "kannala_brandt", "mei", "double_sphere"] = "opencv"
     dist: list[Float] = Field(default_factory=lambda: [0.0] * 8,
-                              description="[k1, k2, p1, p2, k3, k4, k5, k6] (OpenCV order)")
+                              description="the lens model's parameters; for opencv "
+                                          "[k1, k2, p1, p2, k3, k4, k5, k6] (OpenCV order)")
 
     @field_validator("dist")
     @classmethod
-    def _dist_len(cls, v):
-        if not 4 <= len(v) <= 8:
-            raise ValueError("expected 4 to 8 coefficients [k1, k2, p1, p2, k3, k4, k5, k6]")
-        if max(abs(x) for x in v) > MAX_DISTORTION:
+    def _dist_size(cls, v):
+        if v and max(abs(x) for x in v) > MAX_DISTORTION:
             raise ValueError(f"expected coefficients of magnitude at most {MAX_DISTORTION:g}")
-        return list(v) + [0.0] * (8 - len(v))
+        return v
+
+    @model_validator(mode="after")
+    def _dist_len(self):
+        if self.lens == "opencv":
+            if not 4 <= len(self.dist) <= 8:
+                raise ValueError("dist: expected 4 to 8 coefficients [k1, k2, p1, p2, k3, k4, "
+                                 "k5, k6]")
+            object.__setattr__(self, "dist", list(self.dist) + [0.0] * (8 - len(self.dist)))
+        else:
+            lens_parameters(self.lens, self.dist, "dist")  # its count and range, in words
+        return self
 
     @model_validator(mode="after")
     def _image(self):
@@ -130,7 +144,7 @@ class CameraConfig(LensConfig):
                              np.array(self.up))
         t = -R @ np.array(self.position_mm, dtype=np.float64)
         return Camera(self.name, self.width, self.height, self.fx, self.fy, self.cx, self.cy,
-                      self.skew, np.array(self.dist), matrix_to_rodrigues(R), t)
+                      self.skew, np.array(self.dist), matrix_to_rodrigues(R), t, self.lens)
 
 
 class StudioConfig(_Strict):

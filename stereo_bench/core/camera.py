@@ -320,6 +320,14 @@ class Camera:
         rays, valid = lens_model(self.model).unproject(m, self.dist)
         return rays.reshape(uv.shape[:-1] + (3,)), valid.reshape(uv.shape[:-1])
 
+    def within_image_circle(self, uv: np.ndarray) -> np.ndarray:
+        """Pixels (N, 2) moved toward the principal point, in 1 % steps, until they have a ray:
+        a wide lens's image corners that lie beyond its image circle land on its edge."""
+        uv = np.asarray(uv, dtype=np.float64)
+        centre = np.array([self.cx, self.cy])
+        inner = centre + (uv - centre) * np.linspace(1, 0, 101)[:, None, None]
+        return inner[np.argmax(self.has_ray(inner), axis=0), np.arange(len(uv))]
+
     def has_ray(self, uv: np.ndarray) -> np.ndarray:
         """(...,) bool: the pixel (..., 2) sees along one ray (outside a circular fisheye's
         image circle, or beyond a fold, it does not)."""
@@ -327,7 +335,10 @@ class Camera:
 
     def invertible(self, uv: np.ndarray, tol_px: float = 1e-10) -> np.ndarray:
         """(...,) bool: the pixel (..., 2) has a unique ray (an estimated distortion can fold
-        or have a pole inside the image, TRAPS.md)."""
+        or have a pole inside the image, TRAPS.md; a wide lens has none beyond its image
+        circle)."""
+        if self.model != "opencv":
+            return self.has_ray(uv)
         return self.undistorted(uv, tol_px)[1]
 
     def unproject(self, uv: np.ndarray, tol_px: float = 1e-10) -> np.ndarray:
@@ -337,6 +348,12 @@ class Camera:
         pixel lies beyond the fold of the radial distortion or the iteration does not converge.
         """
         xy, valid = self.undistorted(uv, tol_px)
+        if not np.all(valid) and self.model != "opencv":
+            where = np.asarray(uv)[~valid][0]
+            raise DistortionNotInvertibleError(
+                f"camera {self.name!r}: pixel ({where[0]:.1f}, {where[1]:.1f}) has no ray in "
+                f"front of the camera through the {self.model} lens {self.dist.tolist()} "
+                f"({int((~valid).sum())} pixels)")
         if not np.all(valid):
             bad = ~valid
             where = np.asarray(uv)[bad][0]
@@ -377,7 +394,12 @@ class Camera:
             np.stack([np.zeros(self.height), np.arange(self.height)], -1),
             np.stack([np.full(self.height, self.width - 1), np.arange(self.height)], -1),
         ])
-        self.unproject(np.concatenate([self.pixel_grid(step).reshape(-1, 2), border]))
+        uv = np.concatenate([self.pixel_grid(step).reshape(-1, 2), border])
+        if self.model != "opencv":
+            # A wide lens ends at its image circle: pixels beyond it see nothing (black, as the
+            # renderer paints them), and no pixel inside has two rays (lens.py's valid region).
+            return
+        self.unproject(uv)
 
     # --- serialization ----------------------------------------------------------------------
     def to_dict(self) -> dict:

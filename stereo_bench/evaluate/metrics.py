@@ -36,19 +36,24 @@ def rpe_rms(camera: Camera, rvecs, tvecs, object_points, image_points) -> float:
 
 
 def _params(camera: Camera) -> dict:
-    return dict(zip(INTRINSIC_NAMES + DIST_NAMES, np.append(camera.intrinsics, camera.dist)))
+    return dict(zip(INTRINSIC_NAMES + camera.dist_names, np.append(camera.intrinsics,
+                                                                   camera.dist)))
 
 
 def parameter_errors(estimate: Camera, truth: Camera) -> dict:
-    """estimate - truth for fx, fy, cx, cy, skew (px) and k1..k6, p1, p2 (unitless)."""
+    """estimate - truth for fx, fy, cx, cy, skew (px) and the lens's parameters (unitless);
+    between lens models (core/lens.py) only fx..skew, since the lens parameters of two models
+    are not the same quantities (projection_difference compares the lenses)."""
     est, true = _params(estimate), _params(truth)
-    return {k: float(est[k] - true[k]) for k in est}
+    names = est if estimate.model == truth.model else INTRINSIC_NAMES
+    return {k: float(est[k] - true[k]) for k in names}
 
 
 def parameter_rmse(estimate: Camera, truth: Camera) -> float:
-    """The paper's RMSE over PAPER_PARAMS (mixed units; see the module docstring)."""
+    """The paper's RMSE over PAPER_PARAMS (mixed units; see the module docstring); over the
+    parameters both lenses have where they are of different models."""
     err = parameter_errors(estimate, truth)
-    return float(np.sqrt(np.mean([err[k] ** 2 for k in PAPER_PARAMS])))
+    return float(np.sqrt(np.mean([err[k] ** 2 for k in PAPER_PARAMS if k in err])))
 
 
 def _grid(camera: Camera, n: tuple[int, int]) -> np.ndarray:
@@ -64,17 +69,26 @@ def projection_difference_map(estimate: Camera, truth: Camera,
     (intrinsics only, no rotation compensation); the map behind ``projection_difference``, NaN
     where the estimate is not valid."""
     uv = _grid(truth, grid)
-    xy = truth.unproject(uv)
-    diff = np.linalg.norm(estimate.normalized_to_pixels(xy) - uv, axis=1)
-    diff[~_valid(estimate, uv, xy)] = np.nan  # where the estimate is invalid (see below)
+    rays, valid = _true_rays(estimate, truth, uv)
+    diff = np.full(len(uv), np.nan)  # NaN where the estimate is invalid (see below)
+    diff[valid] = np.linalg.norm(estimate.project_cam(rays[valid]) - uv[valid], axis=1)
     return diff.reshape(grid[1], grid[0])
 
 
-def _valid(estimate: Camera, uv: np.ndarray, true_rays: np.ndarray) -> np.ndarray:
-    """Pixels whose true ray lies inside the estimate's radial fold and that have one ray
-    through the estimate: where comparing the two projections means something."""
-    return ((np.linalg.norm(true_rays, axis=-1) < estimate.max_normalized_radius)
-            & estimate.invertible(uv))
+def _true_rays(estimate: Camera, truth: Camera, uv: np.ndarray):
+    """(the true camera's rays of pixels uv (N, 3), valid (N,)): valid where the true camera
+    has a ray, the estimate projects it one to one (inside its radial fold, or its wide lens's
+    field) and the pixel has one ray through the estimate: where comparing the two projections
+    means something. A pinhole truth's rays are (x, y, 1); a wide lens's unit rays, beyond 90
+    degrees where it sees there."""
+    if truth.model == "opencv":
+        xy = truth.unproject(uv)
+        valid = ((np.linalg.norm(xy, axis=-1) < estimate.max_normalized_radius)
+                 & estimate.invertible(uv))
+        return np.column_stack([xy, np.ones(len(uv))]), valid
+    rays, valid = truth.rays(uv)
+    rays = np.where(valid[:, None], rays, [0.0, 0.0, 1.0])
+    return rays, valid & estimate.sees(rays) & estimate.invertible(uv)
 
 
 def validity(estimate: Camera, grid: tuple[int, int] = (64, 48)) -> dict:
@@ -113,21 +127,20 @@ def projection_difference(estimate: Camera, truth: Camera, grid: tuple[int, int]
     the camera frame, which extrinsics would absorb, is explained away (as mrcal's projection_diff).
     """
     uv = _grid(truth, grid)
-    xy = truth.unproject(uv)
-    valid = _valid(estimate, uv, xy)
+    rays, valid = _true_rays(estimate, truth, uv)
     left_out = {"points_left_out": int((~valid).sum()),
                 "fraction_left_out": float((~valid).mean())}
     if not valid.any():
         return {"mean_px": None, "max_px": None, "rotation_compensated_mean_px": None,
                 "rotation_compensated_max_px": None, "rotation_deg": None, **left_out}
-    uv = uv[valid]
-    rays = np.column_stack([xy[valid], np.ones(len(uv))])
+    uv, rays = uv[valid], rays[valid]
     if rotation is not None:
         rays = rays @ rodrigues_to_matrix(rotation).T
     zero = np.zeros(3)
 
     def residuals(rvec):
-        return (project_points(rays, estimate.intrinsics, estimate.dist, rvec, zero, estimate.model) - uv).ravel()
+        return (project_points(rays, estimate.intrinsics, estimate.dist, rvec, zero,
+                               estimate.model) - uv).ravel()
 
     def jacobian(rvec):
         J = project_with_jacobians(rays, estimate.intrinsics, estimate.dist, rvec, zero,

@@ -107,6 +107,12 @@ def node_string(node, default: str) -> str:
     return node.string() if not node.empty() else default
 
 
+#: The lens models (core/lens.py) a one-camera file carries: a wide one is named by
+#: ``lens_model``, its parameters in ``distortion_coefficients`` (for kannala_brandt, the D of
+#: cv2.fisheye; for mei, cv2.omnidir's xi followed by its D). The stereo and multi-camera files,
+#: which OpenCV's pinhole stereo functions read, carry the pinhole lens only.
+ONE_CAMERA_LENSES = ("opencv", "kannala_brandt", "mei", "double_sphere")
+
 #: The lengths of a distortion vector OpenCV's functions accept (0: no distortion).
 OPENCV_DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
 
@@ -136,7 +142,9 @@ def _write_intrinsics(fs, camera: Camera, suffix: str = "", keys=("camera_matrix
     fs.write(f"image_width{suffix}", camera.width)
     fs.write(f"image_height{suffix}", camera.height)
     fs.write(keys[0], camera.K)
-    fs.write(keys[1], camera.dist.reshape(1, 8))
+    if camera.model != "opencv":
+        fs.write(f"lens_model{suffix}", camera.model)
+    fs.write(keys[1], camera.dist.reshape(1, -1))
 
 
 def _read_intrinsics(node_of, where: str, default_name: str, suffix: str = "",
@@ -145,14 +153,22 @@ def _read_intrinsics(node_of, where: str, default_name: str, suffix: str = "",
     """A Camera from the nodes ``node_of(key)`` of one camera's intrinsics."""
     K = common.camera_matrix(node_matrix(node_of(keys[0]), (3, 3), f"{where}: {keys[0]}"),
                              f"{where}: {keys[0]}")
-    dist = node_distortion(node_of(keys[1]), f"{where}: {keys[1]}")
+    lens = node_string(node_of(f"lens_model{suffix}"), "opencv")
+    if lens == "opencv":
+        dist = node_distortion(node_of(keys[1]), f"{where}: {keys[1]}")
+    else:
+        m = _mat(node_of(keys[1]))
+        if m is None:
+            raise ValueError(f"{where}: {keys[1]}: expected an opencv-matrix of the {lens} "
+                             f"lens's parameters")
+        dist = np.asarray(m, dtype=np.float64).reshape(-1)
     name = node_string(node_of(f"camera_name{suffix}"), default_name)
     try:
         return Camera.from_K(name, node_int(node_of(f"image_width{suffix}"),
                                             f"{where}: image_width{suffix}"),
                              node_int(node_of(f"image_height{suffix}"),
                                       f"{where}: image_height{suffix}"),
-                             K, dist, rvec, tvec)
+                             K, dist, rvec, tvec, lens)
     except ValueError as e:
         raise ValueError(f"{where}: {e}") from None
 
@@ -163,7 +179,7 @@ def _read_intrinsics(node_of, where: str, default_name: str, suffix: str = "",
 
 def write_camera(camera: Camera, path) -> Path:
     """Write one camera (the whole model, pose as cam_from_world) to ``path``."""
-    common.rig([camera], FORMAT)
+    common.rig([camera], FORMAT, lenses=ONE_CAMERA_LENSES)
     fs = _writer()
     _write_intrinsics(fs, camera)
     fs.write("rvec_cam_from_world", camera.rvec.reshape(3, 1))

@@ -161,8 +161,12 @@ def plot_trajectory(rig, path: Path, session: bool = False) -> Path:
     for i, cam in enumerate(rig.cameras):
         c = cam.center
         w, h = cam.width - 1, cam.height - 1
-        rays = cam.unproject_rays(np.array([[0, 0], [w, 0], [w, h], [0, h]], float))
-        corners_w = (c + scale * (rays / rays[:, 2:]) @ cam.R) @ basis.T
+        rays = cam.unproject_rays(cam.within_image_circle(
+            np.array([[0, 0], [w, 0], [w, h], [0, h]], float)))
+        # A pinhole's frustum at depth `scale`; a wide lens's corner rays (maybe past 90
+        # degrees) at distance `scale`.
+        ends = rays / rays[:, 2:] if cam.model == "opencv" else rays
+        corners_w = (c + scale * ends @ cam.R) @ basis.T
         cb = c @ basis.T
         for q in corners_w:
             ax.plot(*np.stack([cb, q]).T, color="tab:red", lw=0.8)

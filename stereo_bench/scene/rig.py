@@ -45,13 +45,25 @@ def _axis_angle(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
     return rodrigues_to_matrix(axis * angle[..., None])
 
 
+WIDE_HALF_FOV_DEG = 60.0
+
+
 def half_fov(cameras: list[Camera]) -> tuple[float, float]:
     """tan of the half field of view, horizontal and vertical, of the narrowest camera
     (from the undistorted rays of the image's edge midpoints)."""
     tans = []
     for cam in cameras:
         w, h = cam.width - 1, cam.height - 1
-        xy = np.abs(cam.unproject(np.array([[0, h / 2], [w, h / 2], [w / 2, 0], [w / 2, h]])))
+        edges = np.array([[0, h / 2], [w, h / 2], [w / 2, 0], [w / 2, h]])
+        if cam.model == "opencv":
+            xy = np.abs(cam.unproject(edges))
+        else:
+            # A wide lens: the edges' rays (the image circle's where an edge lies beyond it),
+            # capped at WIDE_HALF_FOV_DEG, past which a flat board is seen too edge-on to help.
+            rays = cam.unproject_rays(cam.within_image_circle(edges))
+            angle = np.minimum(np.arccos(np.clip(rays[:, 2], -1, 1)),
+                               np.radians(WIDE_HALF_FOV_DEG))
+            xy = np.tan(angle)[:, None] * np.ones((1, 2))
         tans.append((min(xy[0, 0], xy[1, 0]), min(xy[2, 1], xy[3, 1])))
     return tuple(np.min(tans, axis=0))
 
