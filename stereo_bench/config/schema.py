@@ -12,7 +12,7 @@ from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, Strict, ValidationError,
-                      field_validator, model_validator)
+                      ValidationInfo, field_validator, model_validator)
 
 from ..core.camera import Camera
 from ..core.lens import lens_parameters
@@ -76,21 +76,15 @@ class LensConfig(_Strict):
 
     @field_validator("dist")
     @classmethod
-    def _dist_size(cls, v):
+    def _dist_len(cls, v, info: ValidationInfo):
         if v and max(abs(x) for x in v) > MAX_DISTORTION:
             raise ValueError(f"expected coefficients of magnitude at most {MAX_DISTORTION:g}")
-        return v
-
-    @model_validator(mode="after")
-    def _dist_len(self):
-        if self.lens == "opencv":
-            if not 4 <= len(self.dist) <= 8:
-                raise ValueError("dist: expected 4 to 8 coefficients [k1, k2, p1, p2, k3, k4, "
-                                 "k5, k6]")
-            object.__setattr__(self, "dist", list(self.dist) + [0.0] * (8 - len(self.dist)))
-        else:
-            lens_parameters(self.lens, self.dist, "dist")  # its count and range, in words
-        return self
+        lens = info.data.get("lens", "opencv")  # validated before dist (declared before it)
+        if lens != "opencv":
+            return lens_parameters(lens, v, f"{lens} lens").tolist()
+        if not 4 <= len(v) <= 8:
+            raise ValueError("expected 4 to 8 coefficients [k1, k2, p1, p2, k3, k4, k5, k6]")
+        return list(v) + [0.0] * (8 - len(v))
 
     @model_validator(mode="after")
     def _image(self):
