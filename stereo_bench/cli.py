@@ -20,6 +20,7 @@ from .run.capture_options import board_from_args, camera_folders
 
 console = Console(stderr=True)
 MAX_TRIALS = 1000
+DEFAULT_METHODS = "zhang,tsai,bouguet,opencv"
 MAX_WORKERS = 64
 
 
@@ -74,16 +75,29 @@ def _named(source, fn, *args):
         raise ConfigError(f"{source}: {e}") from None
 
 
-def _methods(text: str) -> list[str]:
-    from .calibrate import check_methods
+def _methods(text: str | None, lens: str | None = None) -> list[str]:
+    """--methods as a list (None: the default list); with --lens, each made to fit that lens
+    model: by default every listed method that can, else each given one or a refusal."""
+    from .calibrate import check_methods, methods_for_lens
 
-    methods = [m.strip() for m in text.split(",") if m.strip()]
+    methods = [m.strip() for m in (text or DEFAULT_METHODS).split(",") if m.strip()]
     try:
         # BASE-MODEL variants too; an empty list is refused as the text it came from.
         check_methods(methods or [text])
     except ValueError as e:
         raise ValueError(f"--methods: {e}") from None
-    return methods
+    if lens is None:
+        return methods
+    fitting = []
+    for m in methods:
+        try:
+            fitting += methods_for_lens([m], lens)
+        except ValueError as e:
+            if text is not None:  # a method asked for by name is refused, not dropped
+                raise ValueError(f"--lens {lens}: {e}") from None
+    if not fitting:
+        raise ValueError(f"--lens {lens}: none of {', '.join(methods)} fits it")
+    return list(dict.fromkeys(fitting))
 
 
 def _report(trials: list[dict], out: Path, title: str) -> dict:
@@ -202,7 +216,7 @@ def cmd_calibrate_images(args) -> int:
     from .io.rundir import CapturePaths
     from .core.files import write_text
 
-    methods = _methods(args.methods)
+    methods = _methods(args.methods, args.lens)
     pattern, diameter_given = board_from_args(args)
     source = ImageFolders.open(camera_folders(args.cameras), pattern, args.frame_stride,
                                args.max_frames, args.timestamps)
@@ -304,7 +318,7 @@ def cmd_score(args) -> int:
 
 
 def _trial_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--methods", default="zhang,tsai,bouguet,opencv",
+    p.add_argument("--methods", default=DEFAULT_METHODS,
                    help="comma-separated methods (default: %(default)s; also opencv-rational)")
     p.add_argument("--trials", type=int, default=1,
                    help="re-render with N seeds (seed, seed+1, ...) and report mean ± std")
@@ -350,6 +364,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     from .scene.image_folders import MAX_VIDEO_FRAMES
     from .io import FORMATS
+    from .calibrate.lens_models import LENS_MODELS
 
     i = sub.add_parser("calibrate-images",
                        help="calibrate your own images (one folder per camera) with every method",
@@ -399,9 +414,14 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--inverted", action="store_true",
                    help="the board is printed white on black (a board not found as given is "
                         "also tried inverted)")
-    i.add_argument("--methods", default="zhang,tsai,bouguet,opencv",
-                   help="comma-separated methods (default: %(default)s; also BASE-MODEL names "
-                        "such as zhang-brown, and opencv-rational)")
+    i.add_argument("--methods",
+                   help=f"comma-separated methods (default: {DEFAULT_METHODS}; also BASE-MODEL "
+                        f"names such as zhang-brown, and opencv-rational)")
+    i.add_argument("--lens", choices=list(LENS_MODELS),
+                   help="the lens model every method fits: fisheye (Kannala-Brandt, as "
+                        "cv2.fisheye), omnidir (Mei, as cv2.omnidir), doublesphere, or a "
+                        "pinhole family (radtan, rational...); each method of --methods becomes "
+                        "METHOD-LENS, by default every method that fits it")
     i.add_argument("--folds", type=int, default=5,
                    help="k of the k-fold held-out error (default: %(default)s)")
     i.add_argument("--intrinsics", metavar="FILE",

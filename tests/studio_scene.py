@@ -29,13 +29,14 @@ LENSES = [
 ]
 
 
-def studio() -> Rig:
-    """The studio: rig.cameras the true cameras (cam1 ... cam5), rig.pattern the board."""
+def studio(lenses=tuple(LENSES)) -> Rig:
+    """The studio: rig.cameras the true cameras (cam1 ... cam5), rig.pattern the board;
+    ``lenses`` (rig-file lens entries without the image size) in turn."""
     return Rig.from_config(parse_rig({
         "name": "reference_studio",
         "studio": {"layout": "ring", "count": 5, "radius_mm": 3500.0,
                    "height_mm": [1800.0, 2000.0],
-                   "lenses": [{"width": 640, "height": 480, **lens} for lens in LENSES]},
+                   "lenses": [{"width": 640, "height": 480, **lens} for lens in lenses]},
         "pattern": {"kind": "checkerboard", "squares_x": 10, "squares_y": 7, "square_mm": 60.0},
         "trajectory": {"kind": "session", "frames": FRAMES}}))
 

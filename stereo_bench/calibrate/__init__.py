@@ -14,7 +14,7 @@ from __future__ import annotations
 from importlib import import_module
 
 from .base import CalibrationResult, Calibrator, Observations
-from .lens_models import LENS_MODELS, describe_lens_models
+from .lens_models import LENS_MODELS, describe_lens_models, method_name
 
 # base name -> (module, class)
 _BASES = {
@@ -80,6 +80,23 @@ def check_methods(names) -> None:
         parse_method(name)
 
 
+def methods_for_lens(names, lens_model: str) -> list[str]:
+    """``names`` made to fit ``lens_model``: a plain ``BASE`` becomes ``BASE-lens_model``, a name
+    that already fits it stays. ValueError naming the method that cannot fit it (Tsai's has a
+    model of its own) or that names another lens model."""
+    from .lens_models import free_coefficients
+
+    free_coefficients(lens_model)  # an unknown lens model is refused with the list
+    out = []
+    for name in names:
+        base, model = parse_method(name)
+        if model not in (None, lens_model):
+            raise ValueError(f"method {name!r} fits the {model} lens model, not {lens_model}")
+        out.append(method_name(base, lens_model))
+        parse_method(out[-1])  # refuses a base that cannot fit it, saying which models it fits
+    return list(dict.fromkeys(out))
+
+
 def get_calibrator(name: str, **options) -> Calibrator:
     """A calibrator by registry name; ``options`` go to its constructor."""
     base, model = parse_method(name)
@@ -88,4 +105,5 @@ def get_calibrator(name: str, **options) -> Calibrator:
 
 
 __all__ = ["CalibrationResult", "Calibrator", "Observations", "available_methods",
-           "check_methods", "describe_methods", "get_calibrator", "is_method", "parse_method"]
+           "check_methods", "describe_methods", "get_calibrator", "is_method", "methods_for_lens",
+           "parse_method"]

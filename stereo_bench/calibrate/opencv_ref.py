@@ -107,6 +107,9 @@ class OpenCVCalibrator:
                 except cv2.error as e:  # its own initialization fails on some wide views
                     raise ValueError(f"{self.name}: OpenCV refused the views of "
                                      f"{obs.camera_name!r}: {e.err or e}") from None
+                except ValueError as e:  # it diverged to a camera that cannot exist
+                    raise ValueError(f"{self.name}: OpenCV's calibration of "
+                                     f"{obs.camera_name!r} diverged: {e}") from None
             else:
                 rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, obs.image_size, None,
                                                                  None, flags=self.flags)
