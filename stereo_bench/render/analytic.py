@@ -46,7 +46,7 @@ import cv2
 import numpy as np
 
 from ..core.board_shape import BoardShape
-from ..core.camera import Camera
+from ..core.camera import Camera, project_cam_with_jacobians
 from ..core.poses import rodrigues_to_matrix
 from .imaging import (MAX_MOTION_SUBFRAMES, Light, Motion, Optics, Sensor, blinn_phong, defocus,
                       expose, vignetting_gain)
@@ -59,6 +59,7 @@ _CELL = 32         # px, coarse grid used to find the board's image region and f
 _OUTLINE_POINTS = 1024  # samples per outline edge when locating the board's image region
 _NO_RAY = 1e7      # normalized coordinate of a pixel that sees no board: a ray 1e-7 rad off
 _NO_RAY_Z = 1e-6   # the camera's plane, which meets a board 1 m away 10 km off (the background)
+_TURN_DEG = 75.0   # a wide lens renders a board seen further off its axis in a turned view
 _MAX_DEPTH_SLOPE = 2e-3  # per px: interpolating texel coordinates is accurate to 5e-4 px below
 _LEVELS_PER_OCTAVE = 4
 _LEVELS_KEPT = 4   # texture levels cached per renderer (<= 4 x 32 MiB at the default cap)
@@ -139,7 +140,9 @@ class PixelRays:
     A fisheye or omnidirectional lens (lens.py) has pixels without a ray (outside its image
     circle: ``dark`` (H, W) marks them, painted black as the lens leaves them) and pixels whose
     ray points behind the camera's plane; both get a normalized coordinate far outside any
-    board's image (``_NO_RAY``), so they show the background.
+    board's image (``_NO_RAY``), so they show the background. Such a lens can see a board near
+    or behind its own plane: :meth:`toward` then gives the normalized coordinates of a view
+    turned toward the board (its unit rays are kept for that).
     """
 
     def __init__(self, camera: Camera, chunk_points: int = 1 << 15):
@@ -148,28 +151,100 @@ class PixelRays:
         self.fold_radius = camera.max_normalized_radius
         u = np.arange(-1, W + 1, dtype=np.float64)
         self.xy = np.empty((H + 2, W + 2, 2), dtype=np.float32)
+        wide = camera.model != "opencv"
+        # Unit rays (0 where none) of a wide lens, float32: its views toward a board (toward()).
+        self.unit = np.zeros((H + 2, W + 2, 3), dtype=np.float32) if wide else None
         has_ray = np.ones((H + 2, W + 2), dtype=bool)
         rows = max(1, chunk_points // len(u))
         for r0 in range(0, H + 2, rows):
             v = np.arange(r0 - 1, min(r0 + rows, H + 2) - 1, dtype=np.float64)
             uv = np.stack(np.meshgrid(u, v), -1)
-            self.xy[r0:r0 + len(v)], has_ray[r0:r0 + len(v)] = self._normalized(uv)
+            if wide:
+                rays, ok = camera.rays(uv)
+                self.unit[r0:r0 + len(v)] = np.where(ok[..., None], rays, 0.0)
+                self.xy[r0:r0 + len(v)], has_ray[r0:r0 + len(v)] = _normalized(rays, ok)
+            else:
+                self.xy[r0:r0 + len(v)] = camera.unproject(uv)
         self.dark = None if has_ray[1:-1, 1:-1].all() else ~has_ray[1:-1, 1:-1]
         nodes_u = np.minimum(np.arange(0, W - 1 + _CELL, _CELL), W - 1)
         nodes_v = np.minimum(np.arange(0, H - 1 + _CELL, _CELL), H - 1)
-        self.node_xy = self._normalized(np.stack(np.meshgrid(nodes_u, nodes_v), -1)
-                                        .astype(float))[0]
+        nodes = np.stack(np.meshgrid(nodes_u, nodes_v), -1).astype(float)
+        if wide:
+            self.node_unit = np.where((ok := camera.rays(nodes))[1][..., None], ok[0], 0.0)
+            self.node_xy = _normalized(self.node_unit, ok[1])[0]
+        else:
+            self.node_xy = camera.unproject(nodes)
+        self._straight = RayView(self, None, self.xy, self.node_xy)
+        self._turned: RayView | None = None
 
-    def _normalized(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(normalized coordinates (..., 2), has a ray (...)) of pixels (..., 2)."""
-        cam = self.camera
-        if cam.model == "opencv":
-            return cam.unproject(uv), np.ones(uv.shape[:-1], dtype=bool)
-        rays, has_ray = cam.rays(uv)
-        ahead = has_ray & (rays[..., 2] > _NO_RAY_Z)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xy = np.where(ahead[..., None], rays[..., :2] / rays[..., 2:], _NO_RAY)
-        return xy, has_ray
+    def toward(self, points_cam: np.ndarray) -> "RayView":
+        """The view to render points (N, 3) (camera frame, mm; a board's outline) in: the
+        camera's own, or for a wide lens that sees them more than ``_TURN_DEG`` off its axis, a
+        view turned so that its axis points at their mean direction (the last one is kept,
+        as motion blur's sub-frames share it)."""
+        d = points_cam / np.linalg.norm(points_cam, axis=1, keepdims=True)
+        if self.unit is None or d[:, 2].min() > math.cos(math.radians(_TURN_DEG)):
+            return self._straight
+        axis = d.mean(0)
+        axis /= np.linalg.norm(axis)
+        # The rotation taking the optical axis to ``axis`` (about their common normal).
+        turn = np.cross([0.0, 0.0, 1.0], axis)
+        angle = math.atan2(np.linalg.norm(turn), axis[2])
+        Q = rodrigues_to_matrix(turn / max(np.linalg.norm(turn), 1e-300) * angle).T
+        if self._turned is None or not np.array_equal(self._turned.Q, Q):
+            with np.errstate(invalid="ignore"):
+                has = np.any(self.unit != 0, axis=-1)
+                xy = _normalized(self.unit @ Q.T.astype(np.float32), has)[0]
+                node_has = np.any(self.node_unit != 0, axis=-1)
+                node_xy = _normalized(self.node_unit @ Q.T, node_has)[0]
+            self._turned = RayView(self, Q, xy.astype(np.float32), node_xy)
+        return self._turned
+
+
+def _normalized(rays: np.ndarray, has_ray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(normalized coordinates (..., 2), has a ray (...)) of unit rays (..., 3): ``_NO_RAY``
+    where there is no ray or it points behind the plane."""
+    ahead = has_ray & (rays[..., 2] > _NO_RAY_Z)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(ahead[..., None], rays[..., :2] / rays[..., 2:], _NO_RAY), has_ray
+
+
+@dataclass(frozen=True)
+class RayView:
+    """The pixels' normalized coordinates in one view of a camera: its own frame (``Q`` None)
+    or one turned by ``Q`` (view_from_cam, 3x3), where a board's pose is ``(Q R, Q t)``.
+    ``xy`` and ``node_xy`` as in :class:`PixelRays`."""
+
+    rays: PixelRays
+    Q: np.ndarray | None
+    xy: np.ndarray
+    node_xy: np.ndarray
+
+    @property
+    def fold_radius(self) -> float:
+        return self.rays.fold_radius if self.Q is None else np.inf
+
+    def pose(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """view_from_board of a cam_from_board pose."""
+        return (R, t) if self.Q is None else (self.Q @ R, self.Q @ t)
+
+    def _cam_points(self, xy: np.ndarray) -> np.ndarray:
+        return np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], -1) @ self.Q  # Q^T p
+
+    def to_pixels(self, xy: np.ndarray) -> np.ndarray:
+        """Pixels (N, 2) of the view's normalized coordinates xy (N, 2)."""
+        cam = self.rays.camera
+        return cam.normalized_to_pixels(xy) if self.Q is None else cam.project_cam(
+            self._cam_points(xy))
+
+    def jacobian(self, xy: np.ndarray) -> np.ndarray:
+        """d pixels / d xy (N, 2, 2) at the view's normalized coordinates xy (N, 2)."""
+        cam = self.rays.camera
+        if self.Q is None:
+            return cam.normalized_jacobian(xy)
+        J = project_cam_with_jacobians(self._cam_points(xy), cam.intrinsics, cam.dist, True,
+                                       cam.model)[1]["point"]
+        return J @ self.Q.T[:, :2]
 
 
 @dataclass(frozen=True)
@@ -227,24 +302,25 @@ class AnalyticRenderer:
                              f"got shapes {R.shape} and {t.shape}")
         H, W = self.camera.height, self.camera.width
         poses = self._exposure_poses(R, t, velocity)
+        view = self.rays.toward(self.pattern.outline_mm() @ R[:, :2].T + t)
         canvas = np.full((H, W), round(st.background * 256), dtype=np.uint16)
         if len(poses) == 1:
-            strips = self._draw_board(canvas, R, t)
-            return self._finish(self._surround(canvas), strips, rng, R, t)
+            strips = self._draw_board(canvas, R, t, view)
+            return self._finish(self._surround(canvas), strips, rng, *view.pose(R, t), view)
         # The mean of the sub-frames, accumulated only where they draw (each one's strips are
         # disjoint bands of rows): background + mean of (sub-frame - background).
         background = np.float32(round(st.background * 256))
         total = np.zeros((H, W), dtype=np.float32)
         strips = []
         for Rk, tk in poses:
-            drawn = self._draw_board(canvas, Rk, tk)
+            drawn = self._draw_board(canvas, Rk, tk, view)
             for r0, r1, c0, c1, _ in drawn:
                 total[r0:r1, c0:c1] += canvas[r0:r1, c0:c1] - background
                 canvas[r0:r1, c0:c1] = background
             strips += drawn
         total *= np.float32(1 / len(poses))
         total += background
-        return self._finish(self._surround(total), strips, rng, R, t)
+        return self._finish(self._surround(total), strips, rng, *view.pose(R, t), view)
 
     def _surround(self, image: np.ndarray) -> np.ndarray:
         """The image with the pixels that have no ray (a circular fisheye's surround) black."""
@@ -280,23 +356,28 @@ class AnalyticRenderer:
         return [pose(T * ((i + 0.5) / k - 0.5)) for i in range(k)]
 
     # --- geometry -----------------------------------------------------------------------------
-    def _draw_board(self, canvas: np.ndarray, R: np.ndarray, t: np.ndarray) -> list:
-        """Render the board into ``canvas`` (H, W) uint16; returns the strips drawn."""
+    def _draw_board(self, canvas: np.ndarray, R: np.ndarray, t: np.ndarray,
+                    view: RayView) -> list:
+        """Render the board at cam_from_board (R, t) into ``canvas`` (H, W) uint16 through
+        ``view`` (the geometry in its frame, the light in the camera's); returns the strips
+        drawn."""
+        lit = R, t
+        R, t = view.pose(R, t)
         corners = self.pattern.outline_mm() @ R[:, :2].T + t
         normal_dot = R[:, 2] @ t  # > 0: the printed front faces the camera
         if corners[:, 2].max() <= 0 or abs(normal_dot) <= 1e-9 * np.linalg.norm(t):
             return []  # behind the camera, or seen exactly edge-on
         # board_from_normalized, scaled so the homogeneous w is z_ref / depth (order 1; see _PAD).
         B = np.linalg.inv(np.column_stack([R[:, 0], R[:, 1], t])) * corners[:, 2].max()
-        strips, footprint = self._locate(B, R, t)
+        strips, footprint = self._locate(B, R, t, view)
         if not strips:
             return []
         s = self.settings.supersampling
-        level = self._level(footprint / s, front=normal_dot > 0, R=R, t=t)
+        level = self._level(footprint / s, front=normal_dot > 0, R=lit[0], t=lit[1])
         to_texels = self._texel_map(level, B, R, t)
         border = round(self.settings.background * 256)
         for r0, r1, c0, c1, exact in strips:
-            xy = self.rays.xy[r0:r1 + 2, c0:c1 + 2]  # pixels r0-1..r1, c0-1..c1
+            xy = view.xy[r0:r1 + 2, c0:c1 + 2]  # pixels r0-1..r1, c0-1..c1
             texels = sample_texels(xy, to_texels, s, exact)
             samples = cv2.remap(level.image, texels, None, cv2.INTER_LINEAR,
                                 borderMode=cv2.BORDER_CONSTANT, borderValue=border)
@@ -344,7 +425,7 @@ class AnalyticRenderer:
             return plane(xy, False) + shift.astype(np.float32)
         return surface
 
-    def _locate(self, B: np.ndarray, R: np.ndarray, t: np.ndarray):
+    def _locate(self, B: np.ndarray, R: np.ndarray, t: np.ndarray, view: RayView):
         """Where the board is in the image, and how large a pixel is on it.
 
         Works on the coarse nodes (cells of ``_CELL`` px) plus points along the outline, so
@@ -357,7 +438,7 @@ class AnalyticRenderer:
           per pixel (interpolation error (1/4) |w'| / w px, bilinear midpoint error of a/w);
         * footprint: the largest pixel footprint on the visible board, mm per px.
         """
-        rays, cam = self.rays, self.camera
+        rays, cam = view, self.camera
         H, W = cam.height, cam.width
         (x0, y0), (w, h) = self._origin, self._size
         q = np.concatenate([rays.node_xy, np.ones(rays.node_xy.shape[:-1] + (1,))], -1) @ B.T
@@ -378,7 +459,7 @@ class AnalyticRenderer:
         ahead = pc[:, 2] > 1e-9 * np.linalg.norm(t)
         exy = pc[ahead, :2] / pc[ahead, 2:]
         exy = exy[np.linalg.norm(exy, axis=1) < rays.fold_radius]
-        euv = cam.normalized_to_pixels(exy)
+        euv = view.to_pixels(exy)
         on_img = ((euv[:, 0] > -_CELL) & (euv[:, 0] < W + _CELL)
                   & (euv[:, 1] > -_CELL) & (euv[:, 1] < H + _CELL))
         exy, euv = exy[on_img], euv[on_img]
@@ -398,9 +479,9 @@ class AnalyticRenderer:
             strips.append((a * _CELL, min((a + 1) * _CELL, H), b0 * _CELL,
                            min((b1 + 1) * _CELL, W), bool(rough[a, b0:b1 + 1].any())))
         # The footprint varies smoothly: a sparse subset of the outline points is enough.
-        return strips, self._footprint(np.concatenate([rays.node_xy[hit], exy[::16]]), B)
+        return strips, self._footprint(np.concatenate([rays.node_xy[hit], exy[::16]]), B, view)
 
-    def _footprint(self, xy: np.ndarray, B: np.ndarray) -> float:
+    def _footprint(self, xy: np.ndarray, B: np.ndarray, view: RayView) -> float:
         """Largest pixel footprint (mm per px) at normalized points xy (N, 2) on the board."""
         if len(xy) == 0:
             return 0.0
@@ -408,8 +489,7 @@ class AnalyticRenderer:
         # d(X, Y)/d(x, y) of the homography, then chain with d(x, y)/d(u, v) of the camera.
         J_board = (B[None, :2, :2] * q[:, 2, None, None]
                    - q[:, :2, None] * B[None, 2, None, :2]) / q[:, 2, None, None] ** 2
-        cam = self.camera
-        J = J_board @ inverse_2x2(cam.normalized_jacobian(xy))
+        J = J_board @ inverse_2x2(view.jacobian(xy))
         # Largest singular value of each 2x2, in closed form (batched SVD is 10x slower).
         frob = np.sum(J * J, axis=(1, 2))
         det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
@@ -494,9 +574,10 @@ class AnalyticRenderer:
         return texels(diffuse), texels(specular) if light.specular > 0 else None
 
     # --- sensor -------------------------------------------------------------------------------
-    def _finish(self, canvas: np.ndarray, strips: list, rng, R, t) -> np.ndarray:
+    def _finish(self, canvas: np.ndarray, strips: list, rng, R, t, view: RayView) -> np.ndarray:
         """Optics and sensor: the canvas (H, W), uint16 in 1/256 gray levels or float32 in gray
-        levels (a motion-blurred mean), becomes the 8-bit image."""
+        levels (a motion-blurred mean), becomes the 8-bit image; (R, t) the board's pose in
+        ``view``."""
         st = self.settings
         if st.ideal_sensor and canvas.dtype == np.uint16:
             # The exact integer path of an ideal camera (and of additive noise only).
@@ -513,13 +594,13 @@ class AnalyticRenderer:
         optics = st.optics
         if optics.f_number is not None and strips:
             # The blur's reach from the coarse nodes, then the exact radius per pixel in the box.
-            nodes = optics.circle_of_confusion_px(self._plane_depth(self.rays.node_xy, R, t),
+            nodes = optics.circle_of_confusion_px(self._plane_depth(view.node_xy, R, t),
                                                   self.camera.fx)
             finite = np.isfinite(nodes)
             reach = min(0.5 * nodes[finite].max() if finite.any() else 0.0, _MAX_DEFOCUS_PX)
             box = self._board_box(strips, int(math.ceil(reach)) + 2)
             rows, cols = box
-            xy = self.rays.xy[rows.start + 1:rows.stop + 1, cols.start + 1:cols.stop + 1]
+            xy = view.xy[rows.start + 1:rows.stop + 1, cols.start + 1:cols.stop + 1]
             radius = 0.5 * optics.circle_of_confusion_px(self._plane_depth(xy, R, t),
                                                          self.camera.fx)
             image[box] = defocus(image[box], np.minimum(radius, reach).astype(np.float32))

@@ -275,8 +275,9 @@ def session(cameras: list[Camera], board_centre: np.ndarray, board_radius: float
 class GroundTruth:
     """Exact image positions of the feature points.
 
-    points: (C, F, N, 2) px, OpenCV pixel centres; visible: (C, F, N) bool — in front of the
-    camera, on the board's front side, inside the image and inside the distortion's valid radius.
+    points: (C, F, N, 2) px, OpenCV pixel centres; visible: (C, F, N) bool — seen by the lens (in
+    front of the camera and inside the distortion's valid radius, or past 90 degrees where a
+    wide lens sees), on the board's front side and inside the image.
     """
 
     points: np.ndarray
@@ -394,15 +395,20 @@ class Rig:
             front = np.einsum("fi,fni->fn", normal_cam, Pc) > 0
             if self.pattern.two_sided:
                 front = np.ones_like(front)
-            z = Pc[..., 2]
-            ahead = z > 1e-6
-            xy = Pc[..., :2] / np.where(ahead, z, 1.0)[..., None]
-            valid = np.linalg.norm(xy, axis=-1) < cam.max_normalized_radius
-            uv = cam.normalized_to_pixels(xy)
+            if cam.model == "opencv":
+                z = Pc[..., 2]
+                ahead = z > 1e-6
+                xy = Pc[..., :2] / np.where(ahead, z, 1.0)[..., None]
+                seen = ahead & (np.linalg.norm(xy, axis=-1) < cam.max_normalized_radius)
+                uv = cam.normalized_to_pixels(xy)
+            else:  # a wide lens sees past 90 degrees (a board behind its plane) where it can
+                seen = cam.sees(Pc)
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    uv = cam.project_cam(Pc)
             inside = ((uv[..., 0] >= 0) & (uv[..., 0] <= cam.width - 1)
                       & (uv[..., 1] >= 0) & (uv[..., 1] <= cam.height - 1))
             pts[c] = uv
-            vis[c] = front & ahead & valid & inside
+            vis[c] = front & seen & inside
         return GroundTruth(pts, vis)
 
     def coverage(self, gt: GroundTruth | None = None) -> dict[str, dict]:

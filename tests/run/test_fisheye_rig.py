@@ -68,12 +68,11 @@ def test_its_images_calibrate_as_a_capture_with_the_lens_named(run, tmp_path, ca
     ref = results["rig"]["bouguet-fisheye"]["opencv_multiview"]["cameras"]["right"]
     assert ref["difference_centre_mm"] < 1e-3 and ref["difference_rotation_deg"] < 1e-4
     assert "skew" in results["rig"]["zhang-fisheye"]["opencv_multiview"]["error"]
-    # cv2.fisheye.calibrate fails on these views, one camera in its initialisation (which drops
-    # the points its first guess puts past 90 degrees), the other by diverging to a negative
-    # focal length; each failure is reported in words, not raised.
+    # cv2.fisheye.calibrate fails on these views (in its initialisation, which drops the points
+    # its first guess puts past 90 degrees, or by diverging to a negative focal length); each
+    # failure is reported in words, not raised.
     errors = [e.get("error", "") for e in results["calibration"]["opencv-fisheye"].values()]
     assert all(e.startswith("ValueError: opencv-fisheye: OpenCV") for e in errors)
-    assert any("diverged" in e for e in errors) and any("refused" in e for e in errors)
     # A method that cannot fit the lens is refused by name, not dropped.
     assert main(["calibrate-images", f"left={dataset / 'images' / 'left'}", "--board",
                  "checkerboard", "--inner-corners", "8x11", "--square-mm", "15", "--lens",
