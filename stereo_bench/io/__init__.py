@@ -7,8 +7,8 @@ pixel convention, and which refuses the rest with a ValueError naming the camera
 parameter (docs/formats.md has the table):
 
 =============  ===============================================================================
-opencv         OpenCV FileStorage YAML: one camera, a stereo pair (with cv2.stereoRectify's
-               rectification) or a multi-camera rig (:mod:`.opencv_yaml`)
+opencv         OpenCV FileStorage YAML: one camera, a stereo pair (with OpenCV's rectification
+               of it, pinhole or fisheye) or a multi-camera rig (:mod:`.opencv_yaml`)
 colmap         COLMAP text model: cameras.txt, images.txt, points3D.txt (:mod:`.colmap`)
 kalibr         Kalibr camchain.yaml (:mod:`.kalibr`)
 easymocap      EasyMocap intri.yml and extri.yml (:mod:`.easymocap`)

@@ -12,8 +12,13 @@ in metres). Older sessions keep the same fields in ``config.toml`` under ``[cam_
 Cameras are named ``cam_<id>``, as caliscope names its videos (``cam_0.mp4``) and its aniposelib
 export; a written file numbers the cameras in the rig's order (caliscope keeps no names).
 
-Subset: zero skew (caliscope's matrices come from cv2.calibrateCamera, which fits none), the
-pinhole model (a ``fisheye = true`` camera is refused when read), images as recorded (a camera
+Subset: two lens models (core/lens.py), caliscope's two (CameraData.fisheye): OpenCV's pinhole
+(``fisheye = false``, projected by caliscope.core.reprojection.project_points with
+cv2.projectPoints) and the Kannala-Brandt lens (``fisheye = true`` with its 4 coefficients
+k1..k4 as ``distortions``, projected with cv2.fisheye.projectPoints, as caliscope's
+calibrate_intrinsics fits it with cv2.fisheye.calibrate); Mei's and the double sphere lens have
+none and are refused, naming the camera. Zero skew (caliscope's matrices come from
+cv2.calibrateCamera and cv2.fisheye.calibrate, which fit none), images as recorded (a camera
 with a ``rotation_count``, images turned by quarter turns before detection, is refused when
 read: its matrix is of the turned image). A camera whose extrinsics are not yet calibrated has
 no rotation and translation: a file whose cameras all lack them holds intrinsics only (read at
@@ -39,7 +44,7 @@ from ..core.poses import matrix_to_rodrigues
 from ..config.bounds import MAX_FILE_BYTES
 from ..core.files import read_text, write_text
 from . import common
-from .anipose import table_camera, toml_value
+from .anipose import LENSES, table_camera, table_distortions, toml_value
 
 FORMAT = "caliscope camera_array.toml"
 FILE = "camera_array.toml"
@@ -49,16 +54,16 @@ _LEGACY_TABLE = re.compile(r"cam_(\d+)")
 
 def write(cameras: Sequence[Camera], out_dir) -> list[Path]:
     """Write ``camera_array.toml`` in ``out_dir`` (module notes)."""
-    cameras = common.rig(cameras, FORMAT)
+    cameras = common.rig(cameras, FORMAT, lenses=LENSES)
     lines = []
     for i, cam in enumerate(cameras):
         common.refuse_skew(cam, "caliscope (its matrices come from cv2.calibrateCamera)")
-        dist = cam.dist if np.any(cam.dist[5:]) else cam.dist[:5]
+        dist, fisheye = table_distortions(cam)
         lines += [f"[cameras.{i}]"] + [f"{k} = {toml_value(v)}" for k, v in (
             ("cam_id", i), ("size", [cam.width, cam.height]), ("rotation_count", 0),
-            ("matrix", cam.K.tolist()), ("distortions", dist.tolist()),
+            ("matrix", cam.K.tolist()), ("distortions", dist),
             ("translation", (cam.tvec / common.MM_PER_M).tolist()),
-            ("rotation", cam.rvec.tolist()), ("fisheye", False))] + [""]
+            ("rotation", cam.rvec.tolist()), ("fisheye", fisheye))] + [""]
     return [write_text(Path(out_dir) / FILE, "\n".join(lines))]
 
 
@@ -119,4 +124,4 @@ def read(path) -> list[Camera]:
         raise ValueError(f"{path}: camera(s) {', '.join(unposed)} have no rotation and "
                          f"translation while the others have: expected every camera posed "
                          f"(a rig) or none (intrinsics only)")
-    return common.rig([c for c, _ in read_], str(path), posed=not unposed)
+    return common.rig([c for c, _ in read_], str(path), posed=not unposed, lenses=LENSES)

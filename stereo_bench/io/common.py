@@ -51,8 +51,10 @@ def rig(cameras: Sequence[Camera], fmt: str, min_count: int = 1, posed: bool = T
     for cam in cameras:
         plausible(cam, fmt)
         if cam.model not in lenses:
+            carried = " and ".join([", ".join(lenses[:-1]), lenses[-1]] if len(lenses) > 1
+                                   else lenses)
             raise ValueError(f"{fmt}: camera {cam.name!r}: a {cam.model} lens; the format "
-                             f"carries {' and '.join(lenses)} lenses only")
+                             f"carries {carried} lenses only")
     centres = np.array([cam.center for cam in cameras])
     for a in range(len(cameras) if posed else 0):
         for b in range(a + 1, len(cameras)):

@@ -12,7 +12,10 @@ divided by 1000 on writing and multiplied back on reading).
 Subset: zero skew (EasyMocap projects through OpenCV, which ignores K[0][1]: refused) and at most
 5 distortion coefficients (EasyMocap's write_intri accepts 4 or 5: k4..k6 are refused). Names are
 letters, digits, ``_`` and ``-`` (they become FileStorage keys, and EasyMocap cuts a name at its
-first '.'). Pixel convention: OpenCV's, as EasyMocap uses OpenCV throughout. A file without
+first '.'). OpenCV's pinhole lens only: EasyMocap's cameras have no lens flag and project through
+cv2.projectPoints (its dist read as k1, k2, p1, p2[, k3]), so a fisheye or omnidirectional lens
+(core/lens.py) is refused, naming the camera, rather than written to be read back as a pinhole.
+Pixel convention: OpenCV's, as EasyMocap uses OpenCV throughout. A file without
 ``H_``/``W_`` (EasyMocap makes them optional) is refused: the camera core needs an image size.
 """
 

@@ -9,10 +9,17 @@ nonzero coefficient: LENSMODEL_OPENCV4 (k1 k2 p1 p2), OPENCV5 (+ k3) or OPENCV8 
 distortion of cv2.projectPoints in OpenCV's order. Numbers are written with 17 significant
 digits (mrcal's own writer keeps 10, which moves a 4000 px camera by ~1e-7 px).
 
-Subset: zero skew (mrcal's OpenCV models have none: refused). Units: mrcal has none of its own
-(extrinsics are in its calibration object's unit); this module writes millimetres and says so
-in a comment at the top of the file. Pixel convention: OpenCV's, the top-left pixel's centre at
-(0, 0) (mrcal puts an image's centre at ((W-1)/2, (H-1)/2) and its corner pixels at 0 and W-1).
+Subset: OpenCV's pinhole lens with zero skew (mrcal's OpenCV models have none: refused). The
+wide lenses of core/lens.py are refused, naming the camera: mrcal 2.5 has no lens model equal
+to any of them (its models: PINHOLE, STEREOGRAPHIC, LONLAT, LATLON, OPENCV4/5/8/12, CAHVOR,
+CAHVORE, SPLINED_STEREOGRAPHIC). Its nearest are special cases, not the lenses: CAHVORE with
+linearity 0, no alpha, beta, R0 or E projects as a Kannala-Brandt lens with k3 = k4 = 0, and
+STEREOGRAPHIC as Mei's with xi = 1 and no distortion; a calibrated lens is neither, and
+mrcal-convert-lensmodel fits one model to another rather than converting it. Units: mrcal has
+none of its own (extrinsics are in its calibration object's unit); this module writes
+millimetres and says so in a comment at the top of the file. Pixel convention: OpenCV's, the
+top-left pixel's centre at (0, 0) (mrcal puts an image's centre at ((W-1)/2, (H-1)/2) and its
+corner pixels at 0 and W-1).
 
 Files are named ``camera-<i>-<name>.cameramodel`` (mrcal's tools write camera-<i>.cameramodel;
 the file holds no name), so reading a folder gives the rig back in order with its names; any

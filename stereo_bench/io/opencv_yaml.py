@@ -13,14 +13,27 @@ Three layouts, told apart by their keys when read (:func:`read`):
   (cv2.projectPoints, cv2.undistortPoints) read that entry as 0, so a camera with skew projects
   as written only through a reader that applies the full matrix, as this one does.
 * **stereo pair** (:func:`write_stereo`), the keys OpenCV's stereo_calib sample writes:
-  ``M1``, ``D1``, ``M2``, ``D2`` (1x8), ``R``, ``T`` (camera 2 from camera 1,
-  ``p2 = R p1 + T``, mm), ``E``, ``F`` and the rectification of cv2.stereoRectify
-  (CALIB_ZERO_DISPARITY, alpha = -1, at camera 1's image size) ``R1``, ``R2``, ``P1``, ``P2``,
-  ``Q``; plus ``camera_name1/2``, ``image_width1/2`` and ``image_height1/2``. Skew is refused:
-  the rectification OpenCV computes would ignore it.
+  ``M1``, ``D1``, ``M2``, ``D2`` (1x8; 1x4 for a fisheye pair), ``R``, ``T`` (camera 2 from
+  camera 1, ``p2 = R p1 + T``, mm), ``E``, ``F`` and the rectification (CALIB_ZERO_DISPARITY, at camera
+  1's image size) ``R1``, ``R2``, ``P1``, ``P2``, ``Q``; plus ``camera_name1/2``,
+  ``image_width1/2`` and ``image_height1/2``. Two pinhole cameras are rectified by
+  cv2.stereoRectify (alpha = -1); two Kannala-Brandt lenses by cv2.fisheye.stereoRectify
+  (balance 0), the layout of cv2.fisheye.stereoCalibrate's output (D1, D2: its 4 coefficients)
+  with ``lens_model1/2: kannala_brandt``. E and F are the pair's as pinhole cameras of matrices
+  M1, M2 (for a fisheye pair, of its rays in front of the cameras). Any other pair (Mei's or
+  the double sphere lens, whose rectification OpenCV computes as a rotation only or not at all,
+  or two different lenses) is refused: the multi-camera file holds it. Skew is refused: the
+  rectification OpenCV computes would ignore it.
 * **multi-camera rig** (:func:`write_multicam`): ``camera_count`` and one map ``camera_<i>`` per
   camera with ``camera_name``, ``image_width``, ``image_height``, ``camera_matrix``,
   ``distortion_coefficients`` and ``R``, ``T``: cam_i_from_cam0 (mm), camera 0's the identity.
+
+Lens models (core/lens.py): the one-camera and multi-camera files carry every lens, a wide one
+named by ``lens_model`` (omitted for OpenCV's pinhole) with its parameters in
+``distortion_coefficients``: for ``kannala_brandt`` the D of cv2.fisheye (k1..k4); for ``mei``
+cv2.omnidir's xi followed by its D (k1, k2, p1, p2); for ``double_sphere`` xi, alpha (no OpenCV
+function projects it). OpenCV's fisheye and omnidir functions take the skew as their own
+argument (cv2.fisheye's alpha = skew / fx) or from K[0][1] (cv2.omnidir).
 
 The stereo and multi-camera files have no world frame: a rig whose camera 0 is not at the
 identity is refused unless ``rebase=True`` (then written relative to camera 0). Reading them
@@ -107,11 +120,11 @@ def node_string(node, default: str) -> str:
     return node.string() if not node.empty() else default
 
 
-#: The lens models (core/lens.py) a one-camera file carries: a wide one is named by
-#: ``lens_model``, its parameters in ``distortion_coefficients`` (for kannala_brandt, the D of
-#: cv2.fisheye; for mei, cv2.omnidir's xi followed by its D). The stereo and multi-camera files,
-#: which OpenCV's pinhole stereo functions read, carry the pinhole lens only.
-ONE_CAMERA_LENSES = ("opencv", "kannala_brandt", "mei", "double_sphere")
+#: The lens models (core/lens.py) the one-camera and multi-camera files carry (module notes).
+LENSES = ("opencv", "kannala_brandt", "mei", "double_sphere")
+#: The lens models of a stereo file: a pair of one of them, each with OpenCV's rectification of
+#: it (cv2.stereoRectify, cv2.fisheye.stereoRectify).
+STEREO_LENSES = ("opencv", "kannala_brandt")
 
 #: The lengths of a distortion vector OpenCV's functions accept (0: no distortion).
 OPENCV_DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
@@ -179,7 +192,7 @@ def _read_intrinsics(node_of, where: str, default_name: str, suffix: str = "",
 
 def write_camera(camera: Camera, path) -> Path:
     """Write one camera (the whole model, pose as cam_from_world) to ``path``."""
-    common.rig([camera], FORMAT, lenses=ONE_CAMERA_LENSES)
+    common.rig([camera], FORMAT, lenses=LENSES)
     fs = _writer()
     _write_intrinsics(fs, camera)
     fs.write("rvec_cam_from_world", camera.rvec.reshape(3, 1))
@@ -208,26 +221,46 @@ def _camera_node(node_of, where: str, default_name: str) -> Camera:
 # Stereo pair
 # ----------------------------------------------------------------------------------------------
 
-def write_stereo(cameras: Sequence[Camera], path, rebase: bool = False) -> Path:
-    """Write a stereo pair with OpenCV's rectification of it (module notes)."""
+def _rectify(c1: Camera, c2: Camera, R: np.ndarray, T: np.ndarray) -> tuple:
+    """R1, R2, P1, P2, Q: OpenCV's rectification of a pair of one lens model."""
     import cv2
 
-    cameras = common.rig(cameras, FORMAT, min_count=2)
+    if c1.model == "kannala_brandt":
+        # Its defaults otherwise (balance 0, fov_scale 1, camera 1's image size): P1, P2 are a
+        # choice of view, the rectifying rotations R1, R2 are not.
+        return cv2.fisheye.stereoRectify(c1.K, c1.dist, c2.K, c2.dist, c1.size, R,
+                                         T.reshape(3, 1), cv2.fisheye.CALIB_ZERO_DISPARITY)
+    return cv2.stereoRectify(c1.K, c1.dist, c2.K, c2.dist, c1.size, R, T.reshape(3, 1),
+                             flags=cv2.CALIB_ZERO_DISPARITY, alpha=-1)[:5]
+
+
+def stereo_rectifiable(cameras: Sequence[Camera]) -> bool:
+    """Whether OpenCV rectifies the pair: two cameras of one lens model of STEREO_LENSES."""
+    return (len(cameras) == 2 and cameras[0].model == cameras[1].model
+            and cameras[0].model in STEREO_LENSES)
+
+
+def write_stereo(cameras: Sequence[Camera], path, rebase: bool = False) -> Path:
+    """Write a stereo pair with OpenCV's rectification of it (module notes)."""
+    where = f"the {FORMAT} stereo file"
+    cameras = common.rig(cameras, where, min_count=2, lenses=STEREO_LENSES)
     if len(cameras) != 2:
-        raise ValueError(f"{FORMAT} stereo file: expected 2 cameras, got {len(cameras)}")
-    for cam in cameras:
-        common.refuse_skew(cam, f"the {FORMAT} stereo file (cv2.stereoRectify ignores it)")
-    R_all, t_all = common.cam_from_cam0(cameras, f"the {FORMAT} stereo file", rebase)
-    R, T = R_all[1], t_all[1]
+        raise ValueError(f"{where}: expected 2 cameras, got {len(cameras)}")
     c1, c2 = cameras
+    if not stereo_rectifiable(cameras):
+        raise ValueError(f"{where}: cameras {c1.name!r} ({c1.model} lens) and {c2.name!r} "
+                         f"({c2.model} lens): OpenCV rectifies a pair of one lens model; "
+                         f"write_multicam holds any pair")
+    for cam in cameras:
+        common.refuse_skew(cam, f"the {FORMAT} stereo file (OpenCV's stereoRectify ignores it)")
+    R_all, t_all = common.cam_from_cam0(cameras, where, rebase)
+    R, T = R_all[1], t_all[1]
     E = skew_matrix(T) @ R
     F = np.linalg.inv(c2.K).T @ E @ np.linalg.inv(c1.K)
-    R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(c1.K, c1.dist, c2.K, c2.dist, c1.size, R,
-                                                T.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY,
-                                                alpha=-1)
+    R1, R2, P1, P2, Q = _rectify(c1, c2, R, T)
     fs = _writer()
-    fs.writeComment("Camera 2 from camera 1: p2 = R p1 + T (mm); rectification by "
-                    "cv2.stereoRectify at camera 1's image size")
+    fs.writeComment("Camera 2 from camera 1: p2 = R p1 + T (mm); rectification by OpenCV's "
+                    "stereoRectify at camera 1's image size")
     for i, cam in enumerate(cameras, 1):
         _write_intrinsics(fs, cam, suffix=str(i), keys=(f"M{i}", f"D{i}"))
     for key, value in (("R", R), ("T", T.reshape(3, 1)), ("E", E), ("F", F), ("R1", R1),
@@ -242,7 +275,7 @@ def _read_stereo(fs, where: str) -> list[Camera]:
     T = node_matrix(fs.getNode("T"), (3,), f"{where}: T")
     c2 = _read_intrinsics(fs.getNode, where, "camera2", "2", ("M2", "D2"),
                           rvec=matrix_to_rodrigues(R), tvec=T)
-    return common.rig([c1, c2], where)
+    return common.rig([c1, c2], where, lenses=LENSES)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -253,7 +286,7 @@ def write_multicam(cameras: Sequence[Camera], path, rebase: bool = False) -> Pat
     """Write N >= 2 cameras with their cam_i_from_cam0 (module notes)."""
     import cv2
 
-    cameras = common.rig(cameras, FORMAT, min_count=2)
+    cameras = common.rig(cameras, FORMAT, min_count=2, lenses=LENSES)
     R, t = common.cam_from_cam0(cameras, f"the {FORMAT} multi-camera file", rebase)
     fs = _writer()
     fs.writeComment("R, T of camera_<i>: cam_i_from_cam0, p_i = R p_0 + T (mm)")
@@ -279,7 +312,7 @@ def _read_multicam(fs, where: str) -> list[Camera]:
         T = node_matrix(node.getNode("T"), (3,), f"{at}: T")
         cameras.append(_read_intrinsics(node.getNode, at, f"camera{i}",
                                         rvec=matrix_to_rodrigues(R), tvec=T))
-    return common.rig(cameras, where, min_count=2)
+    return common.rig(cameras, where, min_count=2, lenses=LENSES)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -287,12 +320,13 @@ def _read_multicam(fs, where: str) -> list[Camera]:
 # ----------------------------------------------------------------------------------------------
 
 def write(cameras: Sequence[Camera], out_dir, rebase: bool = False) -> list[Path]:
-    """One camera: ``<name>.yaml``; two: ``stereo.yaml``; more: ``cameras.yaml``."""
-    cameras = common.rig(cameras, FORMAT)
+    """One camera: ``<name>.yaml``; a pair OpenCV rectifies (two pinhole cameras, or two
+    Kannala-Brandt lenses): ``stereo.yaml``; any other pair, and more: ``cameras.yaml``."""
+    cameras = common.rig(cameras, FORMAT, lenses=LENSES)
     out_dir = Path(out_dir)
     if len(cameras) == 1:
         return [write_camera(cameras[0], out_dir / f"{cameras[0].name}.yaml")]
-    if len(cameras) == 2:
+    if stereo_rectifiable(cameras):
         return [write_stereo(cameras, out_dir / STEREO_FILE, rebase)]
     return [write_multicam(cameras, out_dir / MULTICAM_FILE, rebase)]
 
