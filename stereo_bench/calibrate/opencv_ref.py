@@ -83,7 +83,7 @@ class OpenCVCalibrator:
                                np.concatenate([np.ravel(xi), np.ravel(D)]), model=self.lens)
         used = np.ravel(idx).astype(int) if idx is not None else np.zeros(0, int)
         # omnidir leaves out the views its initialization rejects: their poses with its camera.
-        poses = {int(i): (r, t) for i, r, t in zip(used, rvecs, tvecs)}
+        poses = {int(i): (np.ravel(r), np.ravel(t)) for i, r, t in zip(used, rvecs, tvecs)}
         rv, tv = zip(*[poses.get(i) or planar_pose(camera, o, p)
                        for i, (o, p) in enumerate(zip(obs.object_points, obs.image_points))])
         left_out = [obs.view_ids[i] for i in range(obs.n_views) if i not in poses]

@@ -119,6 +119,17 @@ def look_at_rotation(position: np.ndarray, target: np.ndarray, up: np.ndarray) -
     return np.stack([np.cross(y, z), y, z])
 
 
+def view_toward(direction: np.ndarray) -> np.ndarray:
+    """view_from_cam (3, 3): the rotation taking the direction (3,) (camera frame) to the optical
+    axis, about their common normal. A wide lens's rays past 90 degrees have no normalized
+    coordinates (x/z, y/z) in the camera's frame; in this view they have, near its axis."""
+    d = np.asarray(direction, dtype=np.float64)
+    d = d / np.linalg.norm(d)
+    turn = np.cross([0.0, 0.0, 1.0], d)
+    angle = np.arctan2(np.linalg.norm(turn), d[2])
+    return rodrigues_to_matrix(turn / max(np.linalg.norm(turn), 1e-300) * angle).T
+
+
 def compose(R_ab: np.ndarray, t_ab: np.ndarray, R_bc: np.ndarray, t_bc: np.ndarray):
     """a_from_c = a_from_b o b_from_c for (R, t) pairs."""
     return R_ab @ R_bc, R_ab @ t_bc + t_ab

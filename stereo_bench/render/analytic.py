@@ -47,7 +47,7 @@ import numpy as np
 
 from ..core.board_shape import BoardShape
 from ..core.camera import Camera, project_cam_with_jacobians
-from ..core.poses import rodrigues_to_matrix
+from ..core.poses import rodrigues_to_matrix, view_toward
 from .imaging import (MAX_MOTION_SUBFRAMES, Light, Motion, Optics, Sensor, blinn_phong, defocus,
                       expose, vignetting_gain)
 from .texels import (OUTSIDE, cells_touching, gaussian_noise, inverse_2x2, linear_weights,
@@ -185,12 +185,7 @@ class PixelRays:
         d = points_cam / np.linalg.norm(points_cam, axis=1, keepdims=True)
         if self.unit is None or d[:, 2].min() > math.cos(math.radians(_TURN_DEG)):
             return self._straight
-        axis = d.mean(0)
-        axis /= np.linalg.norm(axis)
-        # The rotation taking the optical axis to ``axis`` (about their common normal).
-        turn = np.cross([0.0, 0.0, 1.0], axis)
-        angle = math.atan2(np.linalg.norm(turn), axis[2])
-        Q = rodrigues_to_matrix(turn / max(np.linalg.norm(turn), 1e-300) * angle).T
+        Q = view_toward(d.mean(0))
         if self._turned is None or not np.array_equal(self._turned.Q, Q):
             with np.errstate(invalid="ignore"):
                 has = np.any(self.unit != 0, axis=-1)
