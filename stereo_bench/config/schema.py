@@ -298,6 +298,11 @@ class TrajectoryConfig(_Strict):
     grows linearly with depth (``depth_mm``, ``radius_mm``; None: chosen from the board size and
     the narrowest camera's field of view); the board faces the rig, tilted by up to ``tilt_deg``.
 
+    ``dome``: for a wide lens, the board over its whole field (past 90 degrees off axis where
+    it sees behind its plane), each frame at a direction up to ``max_angle_deg`` off the rig's
+    viewing axis (None: the lens's reach toward its image edges) and a depth in ``depth_mm``,
+    facing the rig, tilted by up to ``tilt_deg`` (rig.dome).
+
     ``session``: a calibration session in a studio that surrounds the volume: ``frames`` of the
     board carried through the volume (within ``walk_radius_mm`` of its centre, its centre at
     heights ``height_mm``), turned ``turns`` times about the vertical so that it faces every
@@ -306,7 +311,7 @@ class TrajectoryConfig(_Strict):
     ``depth_mm``/``radius_mm`` if given), as studios take them for intrinsics.
     """
 
-    kind: Literal["spring", "session"] = "spring"
+    kind: Literal["spring", "dome", "session"] = "spring"
     frames: Int = Field(127, gt=0, le=MAX_FRAMES)
     depth_mm: tuple[Float, Float] | None = None
     radius_mm: tuple[Float, Float] | None = None
@@ -316,6 +321,7 @@ class TrajectoryConfig(_Strict):
     closeups: Int = Field(0, ge=0, le=MAX_FRAMES)
     walk_radius_mm: Float | None = Field(None, ge=0, le=1e5)
     height_mm: tuple[Float, Float] | None = None
+    max_angle_deg: Float | None = Field(None, gt=0, lt=180)
 
     @model_validator(mode="after")
     def _ranges(self):
@@ -324,11 +330,16 @@ class TrajectoryConfig(_Strict):
         if self.radius_mm is not None and not 0 <= min(self.radius_mm) <= max(
                 self.radius_mm) <= 1e6:
             raise ValueError("radius_mm: expected radii in 0..1e6 mm")
-        if self.kind == "spring":
+        if self.kind != "session":
             # Their defaults are allowed: the resolved configuration lists every field.
             for f, default in (("closeups", 0), ("walk_radius_mm", None), ("height_mm", None)):
                 if getattr(self, f) != default:
                     raise ValueError(f"{f}: only a session trajectory (kind: session) has it")
+        if self.kind != "dome" and self.max_angle_deg is not None:
+            raise ValueError("max_angle_deg: only a dome trajectory (kind: dome) has it")
+        if self.kind == "dome" and self.radius_mm is not None:
+            raise ValueError("radius_mm: a dome trajectory spreads the board over the lens's "
+                             "field (max_angle_deg); the spring has a radius")
         if self.height_mm is not None and not -1e5 <= self.height_mm[0] <= self.height_mm[1] \
                 <= 1e5:
             raise ValueError("height_mm: expected (low, high) with low <= high, within 100 m")

@@ -40,13 +40,27 @@ def _params(camera: Camera) -> dict:
                                                                    camera.dist)))
 
 
+def _paraxial(camera: Camera) -> dict:
+    """fx..skew with fx, fy (and skew) as the focal lengths on the axis: a Mei or double-sphere
+    lens images a ray near its axis at fx / (1 + xi) px per radian (its fx is not the focal
+    length); OpenCV's pinhole and the Kannala-Brandt lens at fx."""
+    p = {k: v for k, v in _params(camera).items() if k in INTRINSIC_NAMES}
+    if camera.model in ("mei", "double_sphere"):
+        scale = 1.0 / (1.0 + camera.dist[0])
+        p.update(fx=p["fx"] * scale, fy=p["fy"] * scale, skew=p["skew"] * scale)
+    return p
+
+
 def parameter_errors(estimate: Camera, truth: Camera) -> dict:
     """estimate - truth for fx, fy, cx, cy, skew (px) and the lens's parameters (unitless);
-    between lens models (core/lens.py) only fx..skew, since the lens parameters of two models
-    are not the same quantities (projection_difference compares the lenses)."""
-    est, true = _params(estimate), _params(truth)
-    names = est if estimate.model == truth.model else INTRINSIC_NAMES
-    return {k: float(est[k] - true[k]) for k in names}
+    between lens models (core/lens.py) only fx..skew, with fx, fy and skew as the focal lengths
+    on the axis (:func:`_paraxial`), since the other parameters of two models are not the same
+    quantities (projection_difference compares the lenses)."""
+    if estimate.model == truth.model:
+        est, true = _params(estimate), _params(truth)
+    else:
+        est, true = _paraxial(estimate), _paraxial(truth)
+    return {k: float(est[k] - true[k]) for k in est}
 
 
 def parameter_rmse(estimate: Camera, truth: Camera) -> float:
@@ -91,13 +105,17 @@ def _true_rays(estimate: Camera, truth: Camera, uv: np.ndarray):
     return rays, valid & estimate.sees(rays) & estimate.invertible(uv)
 
 
-def validity(estimate: Camera, grid: tuple[int, int] = (64, 48)) -> dict:
+def validity(estimate: Camera, truth: Camera | None = None, grid: tuple[int, int] = (64, 48)
+             ) -> dict:
     """Where an estimate can be used over its image: the fraction of a grid of pixels (corner to
     corner) that have exactly one ray through it, and the normalized radius where its radial
     distortion folds or has a pole (None when it has neither within 87 degrees). A fitted
     high-order model can fold inside the image (TRAPS.md); triangulation and projection through
-    it are meaningless there."""
+    it are meaningless there. Given the ``truth``, only the pixels where the true lens sees
+    count: a circular fisheye's black surround is not a fault of its estimate."""
     uv = _grid(estimate, grid)
+    if truth is not None and truth.model != "opencv":  # a true pinhole sees every pixel
+        uv = uv[truth.has_ray(uv)]
     ok = estimate.invertible(uv)
     fold = estimate.max_normalized_radius
     return {"valid_fraction": float(ok.mean()), "fold_radius": fold if np.isfinite(fold) else None,

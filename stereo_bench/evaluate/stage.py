@@ -138,6 +138,7 @@ def score(result: CalibrationResult, obs: Observations, truth: Camera,
         "paper_rmse": parameter_rmse(est, truth),
         "parameter_errors": parameter_errors(est, truth),
         "projection_difference": projection_difference(est, truth),
+        "validity": validity(est, truth),  # over the pixels the true lens sees
         "board_pose": {k: v for k, v in poses.items() if not isinstance(v, list)},
     }
 

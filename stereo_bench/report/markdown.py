@@ -238,8 +238,11 @@ def markdown(agg: dict, title: str) -> str:
         for cam, row in cams.items():
             bad = row.get("not_valid_everywhere", 0)
             mark = " (folds) †" if bad else ""
+            # A figure missing from every trial without a failure does not apply (the lens
+            # parameters of a lens model other than the true one's): "–", not "failed".
             lines.append(f"| {cam} | {m}{mark} | "
-                         + " | ".join(fmt(row[t]) for t, _ in CALIBRATION_COLUMNS) + " |")
+                         + " | ".join(fmt(row[t]) if row[t]["n"] or row["failures"] else "–"
+                                      for t, _ in CALIBRATION_COLUMNS) + " |")
             failures += [f"- {cam} / {m}: {msg}" for msg in row["failures"]]
             if bad:
                 invalid.append(f"- {cam} / {m}: in {bad} of {agg['trials']} trial(s) the "

@@ -33,7 +33,8 @@ import time
 
 import numpy as np
 
-from ..calibrate import get_calibrator
+from ..calibrate import get_calibrator, parse_method
+from ..calibrate.lens_models import core_lens
 from ..config.schema import CalibrationConfig
 from ..detect.boards import measure_disc_diameter
 from ..calibrate.diagnostics import diagnose, heldout, view_geometry
@@ -147,6 +148,14 @@ def _grouped(items: list[tuple[str, str, str]]) -> list[str]:
             for (cam, text), ms in methods.items()]
 
 
+def _where_no_ray(method: str) -> str:
+    """Why a method's estimate can have no ray at a pixel: a pinhole model folds; a wide lens
+    model's image circle ends (rightly, outside a circular fisheye's)."""
+    if core_lens(parse_method(method)[1]) == "opencv":
+        return "it folds there"
+    return "beyond the image circle it implies: right for a circular fisheye's surround"
+
+
 def flags(results: dict) -> list[str]:
     """What looks wrong in a capture's estimates, in words: a model that folds inside the image
     (an overfitted high-order distortion, TRAPS.md), a held-out error far above the fit's, views
@@ -160,7 +169,7 @@ def flags(results: dict) -> list[str]:
             folded = 1 - e["validity"]["valid_fraction"]
             if not e["validity"]["usable"] and folded >= REPORTED_FOLD:
                 out.append((m, cam, f"the lens model has no unique ray over {100 * folded:.1f} % "
-                                    f"of the image (it folds there); projections and "
+                                    f"of the image ({_where_no_ray(m)}); projections and "
                                     f"triangulations there are meaningless"))
             ratio = e.get("heldout", {}).get("ratio")
             if isinstance(ratio, (int, float)) and ratio > OVERFIT_RATIO:

@@ -144,7 +144,7 @@ def score_calibration(ds: Dataset, path, fmt: str | None, out) -> dict:
         report["cameras"][truth.name] = {
             "projection_difference": projection_difference(est, truth0),
             "parameter_errors": parameter_errors(est, truth0),
-            "validity": validity(est)}
+            "validity": validity(est, truth0)}
     if len(cams) > 1:
         notes = Notes()
         dets, _, _ = load_or_detect(ds, TrialPaths(Path(out)), notes=notes)

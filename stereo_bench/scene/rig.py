@@ -97,8 +97,22 @@ def conical_spring(
     feature points), ``board_radius`` the radius (mm) of the board outline around it. Depth is
     measured along the rig's mean optical axis from the mean camera centre.
     """
+    rig_centre, axis, right, down = _rig_frame(cameras)
+    (d0, d1), (r0, r1) = spring_extent(cameras, board_radius, cfg)
+    s = np.linspace(0.0, 1.0, cfg.frames)
+    phi = 2 * np.pi * cfg.turns * s
+    depth = d0 + (d1 - d0) * s
+    semi = np.asarray(r0) + np.outer(s, np.subtract(r1, r0))  # (F, 2) horizontal, vertical
+    p = (rig_centre + depth[:, None] * axis + (semi[:, :1] * np.cos(phi)[:, None]) * right
+         + (semi[:, 1:] * np.sin(phi)[:, None]) * down)
+
+    return _facing(p, rig_centre, right, phi, board_centre, cfg)
+
+
+def _rig_frame(cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(centre, viewing axis, right, down) of a rig that looks one way: the mean camera centre,
+    the mean optical axis, and the cameras' mean image right and down orthogonal to it."""
     centres = np.stack([c.center for c in cameras])
-    rig_centre = centres.mean(0)
     axis = np.stack([c.R[2] for c in cameras]).mean(0)
     if np.linalg.norm(axis) < 0.3:
         raise ValueError("cameras: their optical axes point in opposing directions (mean axis "
@@ -110,16 +124,13 @@ def conical_spring(
     right = np.stack([c.R[0] for c in cameras]).mean(0)
     right -= (right @ axis) * axis
     right /= np.linalg.norm(right)
-    down = np.cross(axis, right)
+    return centres.mean(0), axis, right, np.cross(axis, right)
 
-    (d0, d1), (r0, r1) = spring_extent(cameras, board_radius, cfg)
-    s = np.linspace(0.0, 1.0, cfg.frames)
-    phi = 2 * np.pi * cfg.turns * s
-    depth = d0 + (d1 - d0) * s
-    semi = np.asarray(r0) + np.outer(s, np.subtract(r1, r0))  # (F, 2) horizontal, vertical
-    p = (rig_centre + depth[:, None] * axis + (semi[:, :1] * np.cos(phi)[:, None]) * right
-         + (semi[:, 1:] * np.sin(phi)[:, None]) * down)
 
+def _facing(p: np.ndarray, rig_centre: np.ndarray, right: np.ndarray, phi: np.ndarray,
+            board_centre: np.ndarray, cfg: TrajectoryConfig) -> Trajectory:
+    """world_from_board poses with the board centre at ``p`` (F, 3) facing ``rig_centre``,
+    upright along ``right``, tilted and rolled at rates set by the phase ``phi`` (F,)."""
     # Facing frame: z from the rig centre through the board centre (OpenCV boards have +z
     # pointing away from a camera that sees their front), x as close to the rig's right as can be.
     z = p - rig_centre
@@ -129,8 +140,8 @@ def conical_spring(
     y = np.cross(z, x)
     facing = np.stack([x, y, z], axis=-1)  # columns: board axes in world
 
-    # Tilt about an in-plane axis turning 2.7x faster than the helix (incommensurate, so the
-    # tilt directions do not repeat with the spring), then roll about the board normal.
+    # Tilt about an in-plane axis turning 2.7x faster than phi (incommensurate, so the tilt
+    # directions do not repeat with the path), then roll about the board normal.
     psi = 2.7 * phi
     tilt_axis = np.stack([np.cos(psi), np.sin(psi), np.zeros_like(psi)], -1)
     tilt = _axis_angle(tilt_axis, np.full_like(psi, np.radians(cfg.tilt_deg)))
@@ -138,6 +149,56 @@ def conical_spring(
     R = facing @ tilt @ roll
     t = p - R @ board_centre
     return Trajectory(matrix_to_rodrigues(R), t)
+
+
+DOME_NEAR_HALF_ANGLE_DEG = 20.0  # a dome's near board spans 40 degrees of the lens by default
+
+
+def lens_reach_deg(cameras: list[Camera]) -> float:
+    """How far off axis (degrees) the narrowest camera sees toward its image edges: the least
+    angle of the rays of its edges' midpoints (pulled inside a circular fisheye's image
+    circle). Past 90 degrees for a wide lens that sees behind its plane."""
+    reach = []
+    for cam in cameras:
+        w, h = cam.width - 1, cam.height - 1
+        edges = np.array([[0, h / 2], [w, h / 2], [w / 2, 0], [w / 2, h]])
+        rays = cam.unproject_rays(cam.within_image_circle(edges))
+        reach.append(np.degrees(np.arccos(np.clip(rays[:, 2], -1, 1))).min())
+    return float(min(reach))
+
+
+def dome(cameras: list[Camera], board_centre: np.ndarray, board_radius: float,
+         cfg: TrajectoryConfig) -> Trajectory:
+    """world_from_board poses over the whole field of a wide lens: the board centre on
+    directions spread evenly over the cap up to ``max_angle_deg`` off the rig's viewing axis
+    (default: the lens's reach toward its image edges, less the board's own angular radius),
+    past 90 degrees for a lens that sees behind its plane, at depths alternating over
+    ``depth_mm`` (default: near enough that the board spans 40 degrees, and twice that), each
+    facing the rig, tilted and rolled as the spring's boards are.
+
+    Directions follow the golden-angle spiral (frame i at polar angle max * sqrt((i + 0.5) /
+    F), azimuth i * 137.5 degrees): an even cover of the cap for any number of frames."""
+    rig_centre, axis, right, down = _rig_frame(cameras)
+    near = board_radius / np.tan(np.radians(DOME_NEAR_HALF_ANGLE_DEG))
+    d0, d1 = cfg.depth_mm or (near, 2.0 * near)
+    F = cfg.frames
+    i = np.arange(F)
+    depth = d0 + (d1 - d0) * ((i * 0.6180339887) % 1.0)
+    if cfg.max_angle_deg is not None:
+        top = np.full(F, np.radians(cfg.max_angle_deg))
+    else:
+        # The board's whole outline inside the lens's reach at each frame's depth.
+        top = np.radians(lens_reach_deg(cameras)) - np.arctan(board_radius / depth)
+    if (top <= 0).any():
+        raise ValueError(f"trajectory.depth_mm: a board of radius {board_radius:.0f} mm at "
+                         f"{depth.min():.0f} mm fills more than the lens's field")
+    polar = top * np.sqrt((i + 0.5) / F)
+    phi = i * np.radians(137.50776405)
+    direction = (np.cos(polar)[:, None] * axis
+                 + np.sin(polar)[:, None] * (np.cos(phi)[:, None] * right
+                                             + np.sin(phi)[:, None] * down))
+    return _facing(rig_centre + depth[:, None] * direction, rig_centre, right, phi,
+                   board_centre, cfg)
 
 
 def world_up(cameras: list[Camera]) -> np.ndarray:
@@ -320,7 +381,8 @@ class Rig:
             except ValueError as e:
                 raise ValueError(f"trajectory.kind session: {e}") from None
         else:
-            trajectory = conical_spring(cameras, centre, radius, cfg.trajectory)
+            build = dome if cfg.trajectory.kind == "dome" else conical_spring
+            trajectory = build(cameras, centre, radius, cfg.trajectory)
             closeup_of = np.full(len(trajectory), -1)
         b = cfg.environment.board
         board = BoardShape.for_pattern(pattern, b.scale_error_pct, b.aspect_error_pct,

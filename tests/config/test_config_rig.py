@@ -67,6 +67,25 @@ def test_shipped_spring_configs_keep_the_board_in_view(path):
     assert seen.mean() >= 0.95, rig.coverage(gt)
 
 
+def test_a_dome_spreads_the_board_over_a_wide_lens_past_90_degrees():
+    """configs/fisheye/fisheye_190_mono.yaml: every frame shows the whole board (each facing
+    the camera) and the frames reach the lens's field, some past 90 degrees off its axis."""
+    rig = Rig.from_config(load_rig(QUICK.parent / "fisheye" / "fisheye_190_mono.yaml"))
+    cam = rig.cameras[0]
+    assert rig.ground_truth().visible[0].all()
+    Pc = cam.world_to_cam(rig.board_points_world())
+    angle = np.degrees(np.arccos(Pc[..., 2] / np.linalg.norm(Pc, axis=-1))).max(axis=1)
+    assert angle.min() < 30 and angle.max() > 90  # measured 22.5 and 90.3 degrees
+    assert np.all(np.einsum("fi,fni->fn", rig.trajectory.rotations[:, :, 2], Pc) > 0)
+    d = quick_dict()
+    d["trajectory"]["max_angle_deg"] = 80
+    with pytest.raises(ConfigError, match="max_angle_deg: only a dome trajectory"):
+        parse_rig(d, "x.yaml")
+    d["trajectory"].update(kind="dome", radius_mm=[10, 20])
+    with pytest.raises(ConfigError, match="radius_mm: a dome trajectory"):
+        parse_rig(d, "x.yaml")
+
+
 def test_trajectory_is_a_conical_spring_facing_the_rig():
     cfg = load_rig(QUICK)
     rig = Rig.from_config(cfg)
