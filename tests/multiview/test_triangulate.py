@@ -46,6 +46,25 @@ def test_noise_free_pixels_give_the_true_points(method):
     assert np.abs(triangulate(CAMS[1:3], uv[1:3], method=method) - X).max() < 1e-6
 
 
+@pytest.mark.parametrize("method", ["dlt", "midpoint", "refined", "robust"])
+def test_wide_lenses_triangulate_through_their_rays(method):
+    """Fisheye and omnidirectional cameras (a GoPro-like studio's): points up to ~80 degrees
+    off a camera's axis, unprojected through each lens's exact rays, come back exact."""
+    fisheye = Camera("kb", 1920, 1080, 880, 880, 959.5, 539.5, 0, [0.04, -0.01, 0.003, -5e-4],
+                     model="kannala_brandt")
+    mei = Camera("mei", 1280, 960, 600, 600, 639.5, 479.5, 0, [0.9, -0.15, 0.03, 2e-4, -3e-4],
+                 model="mei")
+    cams = [placed(fisheye, (-150, 0, 0)), placed(mei, (150, 0, 0)),
+            placed(fisheye, (0, -150, 100))]
+    X = np.random.default_rng(3).uniform([-900, -500, 150], [900, 500, 900], (400, 3))
+    Pc = np.stack([cam.world_to_cam(X) for cam in cams])
+    off_axis = np.degrees(np.arccos(Pc[..., 2] / np.linalg.norm(Pc, axis=-1)))
+    keep = (off_axis < 80).all(0)
+    assert off_axis[:, keep].max() > 70
+    uv = np.stack([cam.project(X[keep]) for cam in cams])
+    assert np.abs(triangulate(cams, uv, method=method) - X[keep]).max() < 1e-6
+
+
 @pytest.mark.parametrize("method", ["dlt", "midpoint", "refined"])
 def test_missing_views_and_zero_weights(method):
     X, uv = scene()
