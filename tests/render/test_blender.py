@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from stereo_bench.config.bounds import ConfigError
+from stereo_bench.core.camera import Camera
 from stereo_bench.config.schema import parse_rig
 from stereo_bench.scene.dataset import render_settings, write_dataset
 from stereo_bench.detect.boards import detect
@@ -44,12 +45,19 @@ def small_rig(renderer="blender", environment_kind="clean", camera=SMALL_CAMERA,
                       "renderer": {"kind": renderer, "samples": 16}}, "test")
 
 
-def test_pinhole_view_sees_every_ray_and_remaps_exactly():
+FISHEYE_70 = {**SMALL_CAMERA, "width": 640, "height": 480, "fx": 330.0, "fy": 330.0,
+              "cx": 319.5, "cy": 239.5, "lens": "kannala_brandt",
+              "dist": [0.03, -0.01, 0.004, -0.0008]}  # 69 degrees to the image corners
+
+
+@pytest.mark.parametrize("camera", [
+    {**SMALL_CAMERA, "width": 640, "height": 480, "fx": 600.0, "fy": 570.0, "cx": 322.0,
+     "cy": 236.5}, FISHEYE_70], ids=["wide", "fisheye"])
+def test_pinhole_view_sees_every_ray_and_remaps_exactly(camera):
     """An analytic render of the pinhole view, through the remap, detects as exactly as the
-    analytic render of the distorted camera itself (both against the same projected truth)."""
-    cfg = small_rig("analytic", camera={**SMALL_CAMERA, "width": 640, "height": 480,
-                                        "fx": 600.0, "fy": 570.0, "cx": 322.0, "cy": 236.5},
-                    frames=4)
+    analytic render of the distorted camera itself (both against the same projected truth);
+    a fisheye seen within 80 degrees too."""
+    cfg = small_rig("analytic", camera=camera, frames=4)
     rig = Rig.from_config(cfg)
     cam, gt = rig.cameras[0], rig.ground_truth()
     view = PinholeView.of(cam)
@@ -73,6 +81,18 @@ def test_pinhole_view_sees_every_ray_and_remaps_exactly():
     # instead of 3 x 3: 0.066 px and a 0.007 px bias).
     assert np.linalg.norm(e, axis=1).mean() < 0.03
     assert np.abs(e.mean(0)).max() < 0.003
+
+
+def test_a_lens_no_pinhole_view_holds_is_refused_by_name():
+    circular = Camera("circle", 1280, 1280, 370, 370, 639.5, 639.5, 0,
+                      [0.02, -0.006, 0.001, -0.0002], model="kannala_brandt")
+    with pytest.raises(ValueError, match="camera 'circle': its kannala_brandt lens sees nothing "
+                                         "beyond its image circle; the Blender backend"):
+        PinholeView.of(circular)
+    wide = circular.with_params(width=1000, height=1000, cx=499.5, cy=499.5)
+    with pytest.raises(ValueError, match="camera 'circle': its kannala_brandt lens sees 109 "
+                                         "degrees off its axis"):
+        PinholeView.of(wide)
 
 
 def test_blender_refuses_what_it_does_not_model():

@@ -29,6 +29,8 @@ from ..analytic import PixelRays
 MAX_SCALE = 2.0
 SUBSAMPLES = 3
 MARGIN_PX = 2  # pinhole pixels beyond the outermost ray: the bilinear taps stay inside
+# The widest ray a pinhole view holds: at 80 degrees it is already 5.7 focal lengths wide.
+MAX_OFF_AXIS_DEG = 80.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -46,8 +48,22 @@ class PinholeView:
 
     @classmethod
     def of(cls, camera: Camera, rays: PixelRays | None = None) -> "PinholeView":
-        xy = (rays if rays is not None else PixelRays(camera)).xy.astype(np.float64)
+        """ValueError naming the camera when its lens sees past MAX_OFF_AXIS_DEG (or has
+        pixels without a ray): no pinhole image holds such a view."""
+        rays = rays if rays is not None else PixelRays(camera)
+        xy = rays.xy.astype(np.float64)
         inner = xy[1:-1, 1:-1]
+        if rays.unit is None:
+            widest = np.degrees(np.arctan(np.hypot(inner[..., 0], inner[..., 1]).max()))
+        else:  # a wide lens: its rays may point behind the camera's plane
+            widest = np.degrees(np.arccos(np.clip(rays.unit[1:-1, 1:-1, 2].min(), -1, 1)))
+        if rays.dark is not None or widest > MAX_OFF_AXIS_DEG:
+            raise ValueError(
+                f"camera {camera.name!r}: its {camera.model} lens sees "
+                + ("nothing beyond its image circle" if rays.dark is not None
+                   else f"{widest:.0f} degrees off its axis")
+                + f"; the Blender backend renders a pinhole view (up to {MAX_OFF_AXIS_DEG:g} "
+                  f"degrees) and remaps it through the lens: use renderer.kind: analytic")
         # True pixels per pinhole pixel of the true focal length, along rows and columns; the
         # smallest spacing says how much denser the pinhole image must be.
         step_u = np.hypot(*np.moveaxis(np.diff(inner, axis=1), -1, 0)) * camera.fx
@@ -60,7 +76,7 @@ class PinholeView:
         pinhole = camera.with_params(
             width=int(math.ceil(hi[0] * fx + cx)) + MARGIN_PX + 1,
             height=int(math.ceil(hi[1] * fy + cy)) + MARGIN_PX + 1,
-            fx=fx, fy=fy, cx=cx, cy=cy, skew=0.0, dist=np.zeros(8))
+            fx=fx, fy=fy, cx=cx, cy=cy, skew=0.0, dist=np.zeros(8), model="opencv")
         to_view = np.array([fx, fy])
         map_xy = (inner * to_view + [cx, cy]).astype(np.float32)
         # Central differences over the rays' margin ring: centred at every pixel, edges included.
