@@ -303,6 +303,10 @@ class TrajectoryConfig(_Strict):
     viewing axis (None: the lens's reach toward its image edges) and a depth in ``depth_mm``,
     facing the rig, tilted by up to ``tilt_deg`` (rig.dome).
 
+    ``poses``: the board exactly where ``poses`` puts it, one world_from_board per frame,
+    each ``[rx, ry, rz, tx, ty, tz]`` (Rodrigues vector, rad; translation, mm); ``frames`` is
+    their number (a twin of a real capture replays the poses its calibration estimated).
+
     ``session``: a calibration session in a studio that surrounds the volume: ``frames`` of the
     board carried through the volume (within ``walk_radius_mm`` of its centre, its centre at
     heights ``height_mm``), turned ``turns`` times about the vertical so that it faces every
@@ -311,7 +315,7 @@ class TrajectoryConfig(_Strict):
     ``depth_mm``/``radius_mm`` if given), as studios take them for intrinsics.
     """
 
-    kind: Literal["spring", "dome", "session"] = "spring"
+    kind: Literal["spring", "dome", "poses", "session"] = "spring"
     frames: Int = Field(127, gt=0, le=MAX_FRAMES)
     depth_mm: tuple[Float, Float] | None = None
     radius_mm: tuple[Float, Float] | None = None
@@ -322,6 +326,8 @@ class TrajectoryConfig(_Strict):
     walk_radius_mm: Float | None = Field(None, ge=0, le=1e5)
     height_mm: tuple[Float, Float] | None = None
     max_angle_deg: Float | None = Field(None, gt=0, lt=180)
+    poses: list[tuple[Float, Float, Float, Float, Float, Float]] | None = Field(
+        None, min_length=1, max_length=MAX_FRAMES)
 
     @model_validator(mode="after")
     def _ranges(self):
@@ -337,6 +343,18 @@ class TrajectoryConfig(_Strict):
                     raise ValueError(f"{f}: only a session trajectory (kind: session) has it")
         if self.kind != "dome" and self.max_angle_deg is not None:
             raise ValueError("max_angle_deg: only a dome trajectory (kind: dome) has it")
+        if (self.kind == "poses") != (self.poses is not None):
+            raise ValueError("poses: a poses trajectory (kind: poses) needs them, and only it "
+                             "has them")
+        if self.poses is not None:
+            if "frames" in self.model_fields_set and self.frames != len(self.poses):
+                raise ValueError(f"frames: {self.frames}, but poses has {len(self.poses)} "
+                                 f"(leave frames out: it is their number)")
+            object.__setattr__(self, "frames", len(self.poses))
+            if any(abs(math.hypot(*p[3:])) > 1e6 or math.hypot(*p[:3]) > 4 * math.pi
+                   for p in self.poses):
+                raise ValueError("poses: expected [rx, ry, rz] within 4 pi rad and a "
+                                 "translation within 1 km per frame")
         if self.kind == "dome" and self.radius_mm is not None:
             raise ValueError("radius_mm: a dome trajectory spreads the board over the lens's "
                              "field (max_angle_deg); the spring has a radius")

@@ -380,6 +380,10 @@ class Rig:
                 trajectory, closeup_of = session(cameras, centre, radius, cfg.trajectory, rng)
             except ValueError as e:
                 raise ValueError(f"trajectory.kind session: {e}") from None
+        elif cfg.trajectory.kind == "poses":
+            given = np.array(cfg.trajectory.poses, dtype=np.float64).reshape(-1, 6)
+            trajectory = Trajectory(given[:, :3], given[:, 3:])
+            closeup_of = np.full(len(trajectory), -1)
         else:
             build = dome if cfg.trajectory.kind == "dome" else conical_spring
             trajectory = build(cameras, centre, radius, cfg.trajectory)

@@ -86,6 +86,21 @@ def test_a_dome_spreads_the_board_over_a_wide_lens_past_90_degrees():
         parse_rig(d, "x.yaml")
 
 
+def test_a_poses_trajectory_puts_the_board_where_it_says():
+    d = quick_dict()
+    poses = [[0.0, 0.0, 0.0, -60.0, -40.0, 500.0], [0.2, -0.1, 0.05, -50.0, -30.0, 650.0]]
+    d["trajectory"] = {"kind": "poses", "poses": poses}
+    rig = Rig.from_config(parse_rig(d, "x.yaml"))
+    assert len(rig.trajectory) == 2
+    assert np.array_equal(np.c_[rig.trajectory.rvecs, rig.trajectory.tvecs], poses)
+    for change, message in (({"frames": 3}, "frames: 3, but poses has 2"),
+                            ({"kind": "spring"}, "poses: a poses trajectory"),
+                            ({"poses": [[0, 0, 0, 0, 0]]}, "trajectory.poses.0"),
+                            ({"poses": [[20.0, 0, 0, 0, 0, 500]]}, "within 4 pi rad")):
+        with pytest.raises(ConfigError, match=message):
+            parse_rig({**d, "trajectory": {**d["trajectory"], **change}}, "x.yaml")
+
+
 def test_trajectory_is_a_conical_spring_facing_the_rig():
     cfg = load_rig(QUICK)
     rig = Rig.from_config(cfg)
