@@ -297,6 +297,24 @@ def cmd_export(args) -> int:
     return 0
 
 
+def cmd_twin(args) -> int:
+    from .core.files import write_text
+    from .report.markdown import twin_markdown
+    from .run.twin import run_twin
+
+    capture = Path(args.capture)
+    out = Path(args.out or capture / "twin")
+    with locked(out):
+        results = run_twin(capture, args.method, args.seeds, out,
+                           progress=lambda text: console.print(text, markup=False,
+                                                               highlight=False))
+        text = twin_markdown(results)
+        write_text(out / "report.md", text)
+    console.print(text, markup=False, soft_wrap=True, highlight=False)
+    console.print(f"wrote {out}/results.json, {out}/report.md", markup=False, highlight=False)
+    return 0
+
+
 def cmd_score(args) -> int:
     from .scene.dataset import Dataset
     from .run.exchange import score_calibration
@@ -460,6 +478,22 @@ def build_parser() -> argparse.ArgumentParser:
                    help="its format (default: guessed from the file names)")
     s.add_argument("--out", help="output folder (default: DATASET/scored)")
     s.set_defaults(func=cmd_score)
+
+    t = sub.add_parser("twin", help="render a twin of your capture and say how far its "
+                                    "calibration most likely is from the truth",
+                       description="From a calibrate-images output: a rig file with the "
+                                   "cameras and board poses the method estimated and the "
+                                   "imaging measured on your images, rendered with exact "
+                                   "truth over several seeds, run through calibrate-images as "
+                                   "your capture was; the real and the twin figures side by "
+                                   "side and, where they agree, each method's true errors "
+                                   "with 95 %% intervals.")
+    t.add_argument("capture", help="a calibrate-images output folder")
+    t.add_argument("--method", default="opencv",
+                   help="whose cameras and board poses the twin replays (default: %(default)s)")
+    t.add_argument("--seeds", type=int, default=10, help="twins rendered (default: %(default)s)")
+    t.add_argument("--out", help="output folder (default: CAPTURE/twin)")
+    t.set_defaults(func=cmd_twin)
 
     w = sub.add_parser("sweep", help="run a grid of configurations (e.g. the paper's 40)",
                        description="Cross rig files with axes of rig-file fields (GRID.yaml, "

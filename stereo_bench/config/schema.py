@@ -483,12 +483,22 @@ class EnvironmentConfig(_Strict):
 
     kind: EnvironmentKind = "clean"
     background: Int = Field(110, ge=0, le=255)
+    # The print's grey levels under full light: its black squares and its white paper.
+    black_level: Int = Field(20, ge=0, le=254)
+    white_level: Int = Field(235, ge=1, le=255)
     supersampling: Int = Field(2, ge=1, le=16)
     light: LightConfig = LightConfig()
     optics: OpticsConfig = OpticsConfig()
     motion: MotionConfig = MotionConfig()
     sensor: SensorConfig = SensorConfig()
     board: BoardConfig = BoardConfig()
+
+    @model_validator(mode="after")
+    def _levels(self):
+        if self.black_level >= self.white_level:
+            raise ValueError(f"black_level: {self.black_level}, expected below white_level "
+                             f"({self.white_level})")
+        return self
 
     @model_validator(mode="before")
     @classmethod

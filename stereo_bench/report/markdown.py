@@ -9,6 +9,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import json
+
 import numpy as np
 
 from ..io.rundir import RunPaths
@@ -479,3 +481,72 @@ def imported_markdown(report: dict) -> str:
             lines.append(f"| {cam} | {_num(e['rotation_deg'], 4)} | {_num(e['centre_mm'], 4)} | "
                          f"{_num(a.get('rotation_deg'), 4)} | {_num(a.get('centre_mm'), 4)} |")
     return "\n".join(lines + [""])
+
+
+def twin_markdown(results: dict) -> str:
+    """The twin's report: real against twin per camera, whether they match, then (only if they
+    do) each method's true errors with 95 % intervals over seeds (run/twin.py)."""
+
+    def iv(s, digits=3):
+        if not isinstance(s, dict) or not s.get("n"):
+            return "–"
+        half = s["ci95"]
+        return f"{s['mean']:.{digits}g}" + (f" ± {half:.2g}" if np.isfinite(half) else "")
+
+    def num(x, digits=3):
+        return f"{x:.{digits}g}" if isinstance(x, (int, float)) else "–"
+
+    m = results["method"]
+    lines = [f"# Twin of {results['capture']}", "",
+             f"The capture's {m} cameras and board poses ({results['frames']['twin']} of "
+             f"{results['frames']['real']} frames), the imaging measured on its images, rendered "
+             f"with exact truth {results['seeds']} times and calibrated as the capture was. Twin "
+             f"values: mean ± the 95 % interval over seeds.", "",
+             f"## Real and twin ({m})", "",
+             "| camera | | detected | RPE px | held-out px | neighbour correlation | residuals "
+             "random | projection σ px |", "|---|---|---|---|---|---|---|---|"]
+    for cam, s in results["side_by_side"].items():
+        r, t = s["real"], s["twin"]
+        lines.append(f"| {cam} | real | {r.get('detected')} of {r.get('frames')} | "
+                     f"{num(r.get('rpe_px'))} | {num(r.get('heldout_px'))} | "
+                     f"{num(r.get('neighbour_correlation'), 2)} | "
+                     f"{'yes' if r.get('residuals_random') else 'no'} | "
+                     f"{num(r.get('projection_sigma_px'))} |")
+        lines.append(f"| {cam} | twin | {iv(t['detected'])} | {iv(t['rpe_px'])} | "
+                     f"{iv(t['heldout_px'])} | {iv(t['neighbour_correlation'], 2)} | "
+                     f"{100 * t['residuals_random_share']:.0f} % of seeds | "
+                     f"{iv(t['projection_sigma_px'])} |")
+    img = results["imaging"]
+    lines += ["", "Imaging measured on the real images (render/imaging_fit.py) and the twin's "
+              "settings:", "", "| camera | black | white | background | gain DN/e | read DN | "
+              "corner illumination | edge σ px | JPEG quality |", "|---|---|---|---|---|---|---|---|---|"]
+    for cam, f in img["measured_on_real"].items():
+        lines.append(f"| {cam} | {f['black_level']:.0f} | {f['white_level']:.0f} | "
+                     f"{f['background']:.0f} | {num(f['gain_dn_per_e'])} | "
+                     f"{f['read_noise_dn']:.2f} | {f['corner_illumination']:.2f} | "
+                     f"{f['edge_sigma_px']:.2f} | {f['jpeg_quality'] or '–'} |")
+    env = results["rig"]["environment"]
+    lines += ["", f"Twin environment: `{json.dumps(env)}` (the lens blur is the real edge "
+              f"width {img['edge_sigma_px']['real']:.2f} px less, in quadrature, the "
+              f"rendered edge's own {img['edge_sigma_px']['rendered_without_blur']:.2f} px). "
+              "Not reproduced: motion blur, the board's warp and scale.", ""]
+    if not results["matches"]:
+        lines += ["## The twin does not match", "",
+                  "Its true errors are not an answer for this capture:", ""]
+        lines += [f"- {x}" for x in results["mismatch"]]
+        return "\n".join(lines) + "\n"
+    lines += ["## How far each calibration most likely is from the truth", "",
+              "| method | camera | projection diff mean px | max px | fx err px | fy err px | "
+              "cx err px | cy err px |", "|---|---|---|---|---|---|---|---|"]
+    for meth, e in results["true_errors"].items():
+        for cam, c in e["cameras"].items():
+            lines.append(f"| {meth} | {cam} | {iv(c['projection_mean_px'])} | "
+                         f"{iv(c['projection_max_px'])} | {iv(c['fx_err_px'])} | "
+                         f"{iv(c['fy_err_px'])} | {iv(c['cx_err_px'])} | {iv(c['cy_err_px'])} |")
+    rigs = {meth: e["rig"] for meth, e in results["true_errors"].items() if "rig" in e}
+    if rigs:
+        lines += ["", "| method | rotation err deg | centre err mm | baseline err mm |",
+                  "|---|---|---|---|"]
+        lines += [f"| {meth} | {iv(r['rotation_deg'])} | {iv(r['centre_mm'])} | "
+                  f"{iv(r['baseline_mm'])} |" for meth, r in rigs.items()]
+    return "\n".join(lines) + "\n"

@@ -62,6 +62,7 @@ def render_settings(cfg: RigConfig, rig: Rig, cam: Camera) -> RenderSettings:
         rig.median_depth(cam), 1.01 * o.focal_length_mm)
     return RenderSettings(
         supersampling=env.supersampling, background=env.background,
+        black_level=env.black_level, white_level=env.white_level,
         light=Light(tuple(env.light.direction), env.light.distance_mm, env.light.ambient,
                     env.light.specular, env.light.shininess),
         motion=Motion(env.motion.exposure_ms, env.motion.speed_mm_s),
