@@ -233,7 +233,8 @@ def cmd_calibrate_images(args) -> int:
 
         given = given_intrinsics(io.load(args.intrinsics, args.intrinsics_format), source,
                                  args.intrinsics)
-    calibration = CalibrationConfig(refine_intrinsics=args.refine_intrinsics)
+    calibration = CalibrationConfig(refine_intrinsics=args.refine_intrinsics,
+                                    fit_board_warp=args.fit_board_warp)
     if not 2 <= args.folds <= 100:
         raise ValueError(f"--folds: expected 2..100, got {args.folds}")
     console.print(f"{len(source.cameras)} camera(s), {source.frames} frames: "
@@ -450,6 +451,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the format of --intrinsics (default: guessed from the file name)")
     i.add_argument("--refine-intrinsics", dest="refine_intrinsics", action="store_true",
                    help="let the rig's bundle adjustment refine each camera's intrinsics")
+    i.add_argument("--fit-board-warp", dest="fit_board_warp", action="store_true",
+                   help="fit the board's warp (mrcal's two-parabola bow, mm) in each camera's "
+                        "calibration, for the methods that can (zhang and its lens models)")
     i.add_argument("--out", help="output directory (default: out/capture)")
     i.set_defaults(func=cmd_calibrate_images)
 

@@ -97,6 +97,11 @@ def methods_for_lens(names, lens_model: str) -> list[str]:
     return list(dict.fromkeys(out))
 
 
+def fits_board_warp(name: str) -> bool:
+    """Whether method ``name`` can fit the board's warp (``board_warp=True``)."""
+    return bool(getattr(_calibrator_class(parse_method(name)[0]), "fits_board_warp", False))
+
+
 def get_calibrator(name: str, **options) -> Calibrator:
     """A calibrator by registry name; ``options`` go to its constructor."""
     base, model = parse_method(name)
@@ -105,5 +110,6 @@ def get_calibrator(name: str, **options) -> Calibrator:
 
 
 __all__ = ["CalibrationResult", "Calibrator", "Observations", "available_methods",
-           "check_methods", "describe_methods", "get_calibrator", "is_method", "methods_for_lens",
+           "check_methods", "describe_methods", "fits_board_warp", "get_calibrator", "is_method",
+           "methods_for_lens",
            "parse_method"]

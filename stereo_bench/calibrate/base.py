@@ -8,11 +8,13 @@ cam_from_board pose per view, and a log of how the estimate was reached.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
 
+from ..core.board_shape import BoardShape
 from ..core.camera import Camera
 
 MIN_POINTS_PER_VIEW = 4  # a plane-to-image homography needs four correspondences
@@ -81,13 +83,24 @@ class CalibrationResult:
 
     rvecs, tvecs: (V, 3) cam_from_board per view, in the order of ``Observations.view_ids``.
     log: method, iterations, initial/final cost, rms_px, time_s, notes and, when the method ends
-    with refine.py, per-parameter standard deviations and the rank of the intrinsic block.
+    with refine.py, per-parameter standard deviations and the rank of the intrinsic block (and
+    ``board_warp_mm`` when it fitted the board's warp).
     """
 
     camera: Camera
     rvecs: np.ndarray
     tvecs: np.ndarray
     log: dict = field(default_factory=dict)
+
+    def board_points(self, obs: "Observations") -> list[np.ndarray]:
+        """Each view's board points (N_i, 3) as the calibration saw the board: the nominal
+        ones, or warped by the board warp it fitted (``log["board_warp_mm"]``)."""
+        warp = self.log.get("board_warp_mm")
+        if warp is None:
+            return list(obs.object_points)
+        grid = BoardShape.of_points(np.concatenate(obs.object_points))
+        shape = dataclasses.replace(grid, warp_mm=tuple(float(w) for w in warp))
+        return [shape.points(o) for o in obs.object_points]
 
 
 class Calibrator(Protocol):

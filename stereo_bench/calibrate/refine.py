@@ -23,6 +23,12 @@ the Schur complement on the intrinsics (invariant under an invertible change of 
 parameters), are the same; :func:`linearize` and :func:`intrinsic_information` give rvec
 Jacobians, as their callers expect.
 
+With ``board`` (a BoardShape giving the feature grid's centre and half-size), the board's warp
+(mrcal's two-parabola deflection w_x, w_y in mm, core/board_shape.py) joins the shared
+parameters, after the model's: the board's points sit at z = warp_basis(xy) . w in every view,
+so d uv / d w = d uv / d points_cam . R[:, 2] warp_basis(xy). A flat board is the same problem
+with w fixed at 0.
+
 An iteration costs one Jacobian, the per-view blocks of the normal equations as batched
 (V, 6, 6) products, and per trial step one projection without Jacobians. At the cost's floor a
 rejected step whose predicted decrease rounding could not resolve ends the iterations, instead
@@ -36,12 +42,14 @@ from typing import Protocol
 
 import numpy as np
 
+from ..core.board_shape import BoardShape
 from ..core.camera import INTRINSIC_NAMES, Camera, project_cam_with_jacobians
 from ..core.lens import lens_model
 from ..core.poses import matrix_to_rodrigues, rodrigues_to_matrix, rotate_jacobian
 
 
 EPS = np.finfo(np.float64).eps
+WARP_NAMES = ("warp_x_mm", "warp_y_mm")
 
 
 class ProjectionModel(Protocol):
@@ -95,7 +103,8 @@ class RefineResult:
     rms_px: sqrt(mean over points of |residual|^2), the paper's RPE_RMS.
     residuals: (N_total, 2) projected - observed pixels, views concatenated in order.
     param_std: (P,) standard deviations (residual variance times the inverse information);
-        NaN for fixed parameters, inf for parameters in the numerical null space.
+        NaN for fixed parameters, inf for parameters in the numerical null space; with a
+        fitted warp, P includes w_x, w_y last (``param_names`` names them).
     jacobian_rank_info: rank, n_free, condition, rcond and the unidentifiable parameter names of
         the intrinsic information matrix (scale-normalized, poses marginalized).
     """
@@ -112,6 +121,7 @@ class RefineResult:
     jacobian_rank_info: dict
     param_names: tuple[str, ...]
     stop_reason: str
+    warp_mm: np.ndarray | None = None  # (w_x, w_y) when the board's warp was fitted
 
     def log(self) -> dict:
         """The fields every refining method puts in CalibrationResult.log."""
@@ -124,16 +134,20 @@ class RefineResult:
             "param_std": {n: float(s) for n, s in zip(self.param_names, self.param_std)
                           if not np.isnan(s)},
             "rank": self.jacobian_rank_info,
+            **({} if self.warp_mm is None else {"board_warp_mm": self.warp_mm.tolist()}),
         }
 
 
 class _Problem:
     """Board points of all views concatenated, with each view's (start, end) among them."""
 
-    def __init__(self, model, free, object_points, image_points):
+    def __init__(self, model, free, object_points, image_points, board=None):
         self.model = model
         self.free = np.asarray(free, dtype=bool)
+        self.n_model = len(model.param_names)
         self.points = np.concatenate(object_points)
+        # d z / d warp of each point (N, 2), with board; None for a flat board.
+        self.basis = None if board is None else board.warp_basis(self.points[:, :2])
         self.observed = np.concatenate(image_points)
         self.magnitude = np.abs(self.observed).ravel() + 1.0  # (2N,) for refine's resolution
         counts = np.array([len(p) for p in object_points])
@@ -148,25 +162,47 @@ class _Problem:
                         np.where(slots < counts[:, None], (np.cumsum(counts) - counts)[:, None]
                                  + slots, len(self.points)))
         self.layout = (len(counts), 2 * n_max)
-        self.board = (self.points if self.padding is None else
-                      np.concatenate([self.points, np.zeros((1, 3))])[self.padding]
-                      ).reshape(len(counts), n_max, 3)
+        self.board = self._laid(self.points)
 
-    def _points_cam(self, rvecs, tvecs):
+    def _laid(self, points):
+        """(N, k) per point -> (V, n_max, k), each view's points together (zeros past its end)."""
+        if self.padding is not None:
+            points = np.concatenate([points, np.zeros((1,) + points.shape[1:])])[self.padding]
+        return points.reshape(self.layout[0], -1, points.shape[-1])
+
+    def _board_points(self, params):
+        """The board's points (N, 3) as the shared parameters shape them (warped or flat)."""
+        if self.basis is None:
+            return self.points
+        return np.column_stack([self.points[:, :2], self.basis @ params[self.n_model:]])
+
+    def _points_cam(self, params, rvecs, tvecs):
         """Each point in its view's camera frame (N, 3), through one (n_max, 3) x (3, 3)
         product per view instead of a gathered (N, 3, 3) rotation per point."""
-        Pc = self.board @ rodrigues_to_matrix(rvecs).transpose(0, 2, 1) + tvecs[:, None, :]
+        board = self.board if self.basis is None else self._laid(self._board_points(params))
+        Pc = board @ rodrigues_to_matrix(rvecs).transpose(0, 2, 1) + tvecs[:, None, :]
         return Pc.reshape(-1, 3) if self.padding is None else Pc[self.padding < len(self.points)]
+
+    def _project(self, params, Pc, rvecs, jacobians=True):
+        """The model's projection; its parameter Jacobian with the warp's columns appended."""
+        uv, J_params, J_point = self.model.project(params[:self.n_model], Pc, jacobians)
+        if jacobians and self.basis is not None:
+            normal = rodrigues_to_matrix(rvecs)[self.view, :, 2]  # (N, 3): the board's z axis
+            along = np.einsum("nij,nj->ni", J_point, normal)
+            J_params = np.concatenate([J_params, along[:, :, None] * self.basis[:, None, :]],
+                                      -1)
+        return uv, J_params, J_point
 
     def residuals(self, params, rvecs, tvecs, jacobians=False):
         """r (N, 2) = projected - observed; with ``jacobians`` also d r / d free params
         (N, 2, F) and d r / d each point's own view's [rvec, tvec] (N, 2, 6)."""
-        uv, J_params, J_point = self.model.project(params, self._points_cam(rvecs, tvecs),
-                                                   jacobians=jacobians)
+        uv, J_params, J_point = self._project(params, self._points_cam(params, rvecs, tvecs),
+                                              rvecs, jacobians)
         r = uv - self.observed
         if not jacobians:
             return r
-        J_rot = np.concatenate([rotate_jacobian(rv, self.points[a:b])
+        points = self._board_points(params)
+        J_rot = np.concatenate([rotate_jacobian(rv, points[a:b])
                                 for rv, (a, b) in zip(rvecs, self.bounds)])
         J_pose = np.concatenate([J_point @ J_rot, J_point], -1)  # (N,2,6) over [rvec, tvec]
         return r, J_params[:, :, self.free], J_pose
@@ -175,8 +211,8 @@ class _Problem:
         """r and its Jacobians as :meth:`residuals` gives them, the rotation part over the left
         increment w of R <- exp([w]x) R (module docstring): d(R p)/dw = -[R p]x, and a row j of
         d uv / d points_cam times -[q]x is the cross product q x j."""
-        Pc = self._points_cam(rvecs, tvecs)
-        uv, J_params, J_point = self.model.project(params, Pc)
+        Pc = self._points_cam(params, rvecs, tvecs)
+        uv, J_params, J_point = self._project(params, Pc, rvecs)
         J_rot = np.cross((Pc - tvecs[self.view])[:, None, :], J_point)
         return (uv - self.observed, J_params[:, :, self.free],
                 np.concatenate([J_rot, J_point], -1))
@@ -291,21 +327,28 @@ def linearize(model: ProjectionModel, params, free, object_points, image_points,
 
 def refine(model: ProjectionModel, params0, free, object_points, image_points, rvecs0, tvecs0,
            max_iter: int = 100, xtol: float = 1e-15, ftol: float = 1e-15,
-           rcond: float = 1e-10) -> RefineResult:
+           rcond: float = 1e-10, board: BoardShape | None = None) -> RefineResult:
     """Levenberg-Marquardt over the free intrinsics and all poses; see the module docstring.
 
     params0 (P,), free (P,) bool, object_points / image_points per view, rvecs0 / tvecs0 (V, 3)
-    cam_from_board. Stops when a step changes the cost by less than ``ftol`` relative or the
+    cam_from_board. ``board``: also fit the board's warp (w_x, w_y), starting flat, about its
+    feature grid's centre and half-size (the result's ``warp_mm`` and its ``param_std``). Stops when a step changes the cost by less than ``ftol`` relative or the
     parameters by less than ``xtol`` relative (in Marquardt's scaling), when no damping gives a
     decrease, or the linear model predicts none by more than ``ftol`` relative or than rounding
     resolves (the cost is at its floating-point floor), or after ``max_iter`` Jacobians.
     """
-    problem = _Problem(model, free, object_points, image_points)
+    warp = board is not None
+    if warp:
+        params0 = np.r_[np.asarray(params0, dtype=np.float64), 0.0, 0.0]
+        free = np.r_[np.asarray(free, dtype=bool), True, True]
+    param_names = tuple(model.param_names) + (WARP_NAMES if warp else ())
+    problem = _Problem(model, free, object_points, image_points, board)
     x = np.array(params0, dtype=np.float64)
     rv, tv = np.array(rvecs0, dtype=np.float64), np.array(tvecs0, dtype=np.float64)
-    if len(x) != len(model.param_names) or problem.free.shape != x.shape:
+    if len(x) != len(param_names) or problem.free.shape != x.shape:
         raise ValueError(f"params0 and free must have {len(model.param_names)} entries "
-                         f"{model.param_names}, got {len(x)} and {problem.free.shape}")
+                         f"{model.param_names}, got {len(x) - 2 * warp} and "
+                         f"{problem.free.shape[0] - 2 * warp}")
     if rv.shape != (len(object_points), 3) or tv.shape != rv.shape:
         raise ValueError(f"rvecs0 and tvecs0 must be ({len(object_points)}, 3), "
                          f"got {rv.shape} and {tv.shape}")
@@ -367,7 +410,7 @@ def refine(model: ProjectionModel, params0, free, object_points, image_points, r
     # The Schur complement on the intrinsics does not depend on how the poses are parametrized.
     U, V, W = normal[:3]
     S = _schur(U, V, W)[0]
-    names = [n for n, f in zip(model.param_names, problem.free) if f]
+    names = [n for n, f in zip(param_names, problem.free) if f]
     info = rank_info(S, names, rcond)
     dof = r.size - len(names) - 6 * len(rv)
     sigma2 = 2.0 * cost / dof if dof > 0 else float("nan")
@@ -381,5 +424,7 @@ def refine(model: ProjectionModel, params0, free, object_points, image_points, r
         free_std[[n in info["unidentifiable"] for n in names]] = np.inf
         std[problem.free] = free_std
     n_points = len(r)
-    return RefineResult(x, rv, tv, cost0, cost, iterations, float(np.sqrt(2.0 * cost / n_points)),
-                        r, std, info, tuple(model.param_names), reason)
+    n = len(model.param_names)
+    return RefineResult(x[:n], rv, tv, cost0, cost, iterations,
+                        float(np.sqrt(2.0 * cost / n_points)), r, std, info, param_names, reason,
+                        x[n:] if warp else None)

@@ -27,6 +27,7 @@ import time
 
 import numpy as np
 
+from ..core.board_shape import BoardShape
 from ..core.camera import Camera, project_points
 from ..core.poses import rodrigues_to_matrix
 from .base import CalibrationResult, Observations
@@ -101,9 +102,13 @@ class ZhangCalibrator:
     lens_models = tuple(LENS_MODELS)
     own_model = "Zhang's model (fx, fy, cx, cy, skew, k1, k2)"
 
+    fits_board_warp = True
+
     def __init__(self, zero_skew: bool = False, max_iter: int = 100,
-                 lens_model: str | None = None):
+                 lens_model: str | None = None, board_warp: bool = False):
+        """``board_warp``: also fit the board's warp in the refinement (refine.py)."""
         self.name = method_name("zhang", lens_model)
+        self.board_warp = board_warp
         self.zero_skew = zero_skew
         self.max_iter = max_iter
         dist = free_coefficients("radial2" if lens_model is None else lens_model)
@@ -124,7 +129,9 @@ class ZhangCalibrator:
         model = CameraModel(self.lens)
         res = refine(model, model.params_of(initial),
                      free_mask(model.param_names, self.model_parameters),
-                     obs.object_points, obs.image_points, rvecs, tvecs, max_iter=self.max_iter)
+                     obs.object_points, obs.image_points, rvecs, tvecs, max_iter=self.max_iter,
+                     board=(BoardShape.of_points(np.concatenate(obs.object_points))
+                            if self.board_warp else None))
         log = {"method": self.name, "zero_skew": self.zero_skew,
                "free": list(self.model_parameters), "closed_form": initial.to_dict(),
                **res.log(), "time_s": time.perf_counter() - t0,

@@ -382,6 +382,9 @@ class CalibrationConfig(_Strict):
 
     intrinsics_views: Literal["all", "closeups", "session"] = "all"
     refine_intrinsics: Annotated[bool, Strict()] = False
+    # Fit the board's warp (mrcal's two-parabola deflection) in each camera's refinement, for
+    # the methods that can (zhang and its lens models; calibrate.fits_board_warp).
+    fit_board_warp: Annotated[bool, Strict()] = False
     loss: Literal["linear", "soft_l1", "huber", "cauchy"] = "linear"
     loss_scale_px: Float = Field(1.0, gt=0, le=100)
 

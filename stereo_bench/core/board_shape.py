@@ -53,24 +53,36 @@ class BoardShape:
                     warp_mm=(0.0, 0.0)) -> "BoardShape":
         """The shape of ``pattern`` printed ``scale_error_pct`` % too large (x and y) and a further
         ``aspect_error_pct`` % in y, with the given warp."""
-        obj = pattern.object_points()[:, :2]
-        lo, hi = obj.min(0), obj.max(0)
         sx = 1.0 + scale_error_pct / 100.0
         sy = sx * (1.0 + aspect_error_pct / 100.0)
-        return cls((sx, sy), (float(warp_mm[0]), float(warp_mm[1])),
-                   tuple(float(v) for v in (lo + hi) / 2),
-                   tuple(float(v) for v in np.maximum((hi - lo) / 2, 1e-9)))
+        grid = cls.of_points(pattern.object_points())
+        return cls((sx, sy), (float(warp_mm[0]), float(warp_mm[1])), grid.centre_mm,
+                   grid.half_mm)
+
+    @classmethod
+    def of_points(cls, points: np.ndarray) -> "BoardShape":
+        """The flat, true-to-scale shape whose feature grid spans ``points`` (N, 2 or 3) mm: the
+        frame a fitted warp is expressed in."""
+        xy = np.asarray(points, dtype=np.float64)[:, :2]
+        lo, hi = xy.min(0), xy.max(0)
+        return cls(centre_mm=tuple(float(v) for v in (lo + hi) / 2),
+                   half_mm=tuple(float(v) for v in np.maximum((hi - lo) / 2, 1e-9)))
 
     @property
     def is_nominal(self) -> bool:
         return self.scale == (1.0, 1.0) and self.warp_mm == (0.0, 0.0)
 
-    def height(self, xy: np.ndarray) -> np.ndarray:
-        """z' (...,) mm of nominal board points xy (..., 2)."""
+    def warp_basis(self, xy: np.ndarray) -> np.ndarray:
+        """(..., 2): d z' / d (w_x, w_y) at nominal board points xy (..., 2); the height is
+        linear in the warp (a calibration that fits the warp uses these as its Jacobian)."""
         (cx, cy), (ax, ay) = self.centre_mm, self.half_mm
         u = (xy[..., 0] - cx) / ax
         v = (xy[..., 1] - cy) / ay
-        return -(self.warp_mm[0] * (1 - u * u) + self.warp_mm[1] * (1 - v * v))
+        return np.stack([-(1 - u * u), -(1 - v * v)], -1)
+
+    def height(self, xy: np.ndarray) -> np.ndarray:
+        """z' (...,) mm of nominal board points xy (..., 2)."""
+        return self.warp_basis(xy) @ np.asarray(self.warp_mm, dtype=xy.dtype)
 
     def points(self, nominal: np.ndarray) -> np.ndarray:
         """Physical board-frame points (N, 3) mm of nominal points (N, 3) on z = 0."""

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..calibrate import CalibrationResult, Observations, get_calibrator
+from ..calibrate import fits_board_warp, CalibrationResult, Observations, get_calibrator
 from ..core.camera import Camera
 from ..core.poses import matrix_to_rodrigues
 from ..config.schema import CalibrationConfig
@@ -117,8 +117,8 @@ def summary(result: CalibrationResult, obs: Observations) -> dict:
     """What one calibration says of itself, without any truth: its fit to the detections, where
     its model can be used, how much data it saw, and its log."""
     return {
-        "rpe_rms_px": rpe_rms(result.camera, result.rvecs, result.tvecs, obs.object_points,
-                              obs.image_points),
+        "rpe_rms_px": rpe_rms(result.camera, result.rvecs, result.tvecs,
+                              result.board_points(obs), obs.image_points),
         "validity": validity(result.camera),
         "views": obs.n_views,
         "points": obs.n_points,
@@ -154,9 +154,19 @@ def save_calibration(result: CalibrationResult, obs: Observations, trial: TrialP
 
 def metrics_fingerprint(detections_fp: str, methods: list[str],
                         calibration: CalibrationConfig) -> str:
-    """What the per-camera calibrations depend on: the detections, the methods and the views
-    the intrinsics come from (the rig stage's settings are in ``pipeline.rig_fingerprint``)."""
-    return fingerprint("metrics", detections_fp, list(methods), calibration.intrinsics_views)
+    """What the per-camera calibrations depend on: the detections, the methods, the views the
+    intrinsics come from and whether the board's warp is fitted (the rig stage's settings are in
+    ``pipeline.rig_fingerprint``)."""
+    warp = ["board warp"] if calibration.fit_board_warp else []  # earlier runs keep theirs
+    return fingerprint("metrics", detections_fp, list(methods), calibration.intrinsics_views,
+                       *warp)
+
+
+def warp_option(method: str, calibration: CalibrationConfig) -> dict:
+    """The calibrator's options for ``calibration.fit_board_warp``: the methods that can fit
+    the board's warp do (the others keep a flat board, and say so in their log)."""
+    return {"board_warp": True} if calibration.fit_board_warp and fits_board_warp(method) \
+        else {}
 
 
 def intrinsics_frames(ds: Dataset, camera: int, calibration: CalibrationConfig) -> np.ndarray:
@@ -220,7 +230,8 @@ def calibrate_cameras(source, dets: list[CameraDetections], methods: list[str],
             t0 = time.perf_counter()
             try:
                 result = (with_given_intrinsics(given[cam.name], obs)
-                          if cam.name in (given or {}) else get_calibrator(m).calibrate(obs))
+                          if cam.name in (given or {}) else
+                          get_calibrator(m, **warp_option(m, calibration)).calibrate(obs))
                 result = CalibrationResult(result.camera.with_params(name=cam.name),
                                            result.rvecs, result.tvecs, result.log)
                 save_calibration(result, obs, trial, m)

@@ -418,6 +418,16 @@ def capture_markdown(results: dict, title: str) -> str:
                       f"{cov['grid'][0]} x {cov['grid'][1]} grid of the image; their convex hull "
                       f"{cov['hull_fraction'] * 100:.0f} % of it.", ""]
         lines += _capture_camera_rows(results, cam) + [""]
+        warps = [(m, e["log"]) for m in results["methods"]
+                 if "board_warp_mm" in (e := results["calibration"][m].get(cam, {})).get("log",
+                                                                                         {})]
+        if warps:
+            lines += ["Board warp fitted (mrcal's two-parabola bow of the feature grid's centre, "
+                      "mm, ± 1σ): " + "; ".join(
+                          f"{m} " + ", ".join(
+                              f"{w:.3f} ± {log['param_std'].get(n, float('nan')):.3f}"
+                              for w, n in zip(log["board_warp_mm"], ("warp_x_mm", "warp_y_mm")))
+                          for m, log in warps) + ".", ""]
         flagged = [(m, v) for m in results["methods"]
                    for v in results["calibration"][m].get(cam, {}).get("diagnostics", {})
                    .get("views", {}).get("flagged", [])]
@@ -529,7 +539,9 @@ def twin_markdown(results: dict) -> str:
     lines += ["", f"Twin environment: `{json.dumps(env)}` (the lens blur is the real edge "
               f"width {img['edge_sigma_px']['real']:.2f} px less, in quadrature, the "
               f"rendered edge's own {img['edge_sigma_px']['rendered_without_blur']:.2f} px). "
-              "Not reproduced: motion blur, the board's warp and scale.", ""]
+              "Not reproduced: motion blur, the board's scale"
+              + (", its warp (not fitted by the capture: --fit-board-warp)"
+                 if "board" not in env else "") + ".", ""]
     if not results["matches"]:
         lines += ["## The twin does not match", "",
                   "Its true errors are not an answer for this capture:", ""]

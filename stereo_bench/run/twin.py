@@ -22,8 +22,9 @@ where they disagree (an RPE outside +-20 %, residuals random on one side only) a
 they agree, how far each method's calibration most likely is from the truth (95 % intervals
 over seeds).
 
-Not reproduced: motion blur and the board's warp and scale (the capture's calibration does not
-estimate them); a twin whose RPE is too low for these reasons says so.
+The board's warp is reproduced when the capture fitted it (``calibrate-images
+--fit-board-warp``, the cameras' estimates averaged). Not reproduced: motion blur and the
+board's scale; a twin whose RPE is too low for these reasons says so.
 """
 
 from __future__ import annotations
@@ -311,6 +312,10 @@ def run_twin(capture: Path, method: str, seeds: int, out: Path, progress=print) 
     fits = measure_images(capture, cameras, views, pattern)
     env, calibration = calibrated_environment(name, cameras, poses, pattern_spec, pattern, fits,
                                               out / "calibration")
+    warps = [e["log"]["board_warp_mm"] for e in real["calibration"][method].values()
+             if "board_warp_mm" in e.get("log", {})]
+    if warps:  # the capture fitted its board's warp (--fit-board-warp): the twin's board bows so
+        env["board"] = {"warp_mm": np.mean(warps, axis=0).round(4).tolist()}
     methods = real["methods"]
     trials = []
     for s in range(seeds):
