@@ -48,3 +48,30 @@ def test_a_bowed_board_is_recovered_and_its_cost_removed(tmp_path, flat, warp):
     assert fitted["rpe_rms_px"] < 1.2 * flat["rpe_rms_px"]
     assert (fitted["projection_difference"]["mean_px"]
             < 1.5 * flat["projection_difference"]["mean_px"] + 0.02)
+
+
+def test_the_warps_jacobian_matches_finite_differences():
+    """d residuals / d (w_x, w_y) of refine's problem against central differences."""
+    import numpy as np
+
+    from stereo_bench.calibrate.refine import CameraModel, _Problem
+    from stereo_bench.core.board_shape import BoardShape
+    from stereo_bench.core.camera import Camera
+    from stereo_bench.core.patterns import Checkerboard
+
+    cam = Camera("c", 640, 480, 600, 450, 320, 240, 0.5, [0.5, 0.1, 0.03, 0, 0, 0, 0, 0])
+    obj = Checkerboard().object_points()
+    rng = np.random.default_rng(2)
+    rv = rng.normal(0, 0.3, (3, 3))
+    tv = np.array([[-60.0, -80.0, 400.0], [-40.0, -60.0, 350.0], [-70.0, -90.0, 450.0]])
+    model = CameraModel("opencv")
+    free = np.r_[np.zeros(len(model.param_names), bool), True, True]
+    problem = _Problem(model, free, [obj] * 3, [np.zeros((len(obj), 2))] * 3,
+                       BoardShape.of_points(obj))
+    x = np.r_[model.params_of(cam), 0.7, -0.4]
+    J = problem.residuals(x, rv, tv, jacobians=True)[1]
+    for k in range(2):
+        dx = np.zeros_like(x)
+        dx[-2 + k] = 1e-6
+        fd = (problem.residuals(x + dx, rv, tv) - problem.residuals(x - dx, rv, tv)) / 2e-6
+        assert np.abs(J[:, :, k] - fd).max() < 1e-6 * np.abs(fd).max()
