@@ -219,10 +219,12 @@ class ImagingFit:
 
 
 def _cos2(camera: Camera, uv: np.ndarray) -> np.ndarray:
-    """cos^2 of the angle between each pixel's ray and the optical axis (NaN without a ray)."""
-    xy, valid = camera.undistorted(uv)
-    return np.where(valid, 1.0 / (1.0 + np.sum(np.where(valid[:, None], xy, 0.0) ** 2, axis=1)),
-                    np.nan)
+    """cos^2 of the angle between each pixel's ray and the optical axis, at most 85 degrees
+    (a wide lens sees further; the renderer's cos^4a law has no light left there); NaN
+    without a ray."""
+    rays, valid = camera.rays(uv)
+    cos = np.maximum(rays[..., 2], math.cos(math.radians(85.0)))
+    return np.where(valid, cos * cos, np.nan)
 
 
 def fit_imaging(samples: list[ViewSamples], camera: Camera, quality: int | None
@@ -250,7 +252,9 @@ def fit_imaging(samples: list[ViewSamples], camera: Camera, quality: int | None
     (log_w0, two_a), *_ = np.linalg.lstsq(A, np.log(np.maximum(means[~black][ok], 1e-3)),
                                           rcond=None)
     w, h = camera.width - 1, camera.height - 1
-    corner_cos2 = np.nanmin(_cos2(camera, np.array([[0, 0], [w, 0], [0, h], [w, h]], float)))
+    # A circular fisheye's corners see nothing: its image circle's edge stands in for them.
+    corners = camera.within_image_circle(np.array([[0, 0], [w, 0], [0, h], [w, h]], float))
+    corner_cos2 = np.nanmin(_cos2(camera, corners))
     corner = float(np.clip(corner_cos2 ** two_a, 0.05, 1.0))
     # The background behind the vignetting.
     bg = np.concatenate([s.background for s in samples])
