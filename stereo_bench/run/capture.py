@@ -507,6 +507,7 @@ def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration
         # Views are numbered by frame index (view_ids); this is each index's name.
         "frame_names": [source.frame_name(f) for f in range(source.frames)],
         "methods": methods,
+        "calibration_settings": calibration.model_dump(),
         "detection": {c.name: {"frames": source.frames, "found": int(d.found.sum()),
                                "errors": {source.frame_name(f): e for f, e in d.errors.items()},
                                "views_left_out": left_out[c.name]}

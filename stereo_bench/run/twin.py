@@ -239,14 +239,16 @@ def calibrated_environment(name, cameras, poses, pattern_spec, pattern, fits, ou
         "edge_sigma_px": {"real": sigma, "rendered_without_blur": sigma0, "blur_px": blur}}
 
 
-def _capture_of(ds, methods, out: Path, pattern) -> dict:
-    """The twin's images through calibrate-images, as the real ones went."""
+def _capture_of(ds, methods, out: Path, pattern, settings: dict) -> dict:
+    """The twin's images through calibrate-images, as the real ones went (the same methods and
+    calibration settings, e.g. --fit-board-warp)."""
+    from ..config.schema import CalibrationConfig
     from ..scene.image_folders import ImageFolders
     from .capture import calibrate_capture
 
     source = ImageFolders.open({c.name: str(ds.paths.images(c.name)) for c in ds.cameras},
                                pattern)
-    return calibrate_capture(source, methods, out)
+    return calibrate_capture(source, methods, out, CalibrationConfig(**settings))
 
 
 def _scores(capture_results: dict, capture_out: Path, ds) -> dict:
@@ -322,7 +324,8 @@ def run_twin(capture: Path, method: str, seeds: int, out: Path, progress=print) 
         progress(f"seed {s + 1} of {seeds}: render, calibrate as a capture, score")
         rig = twin_rig(name, cameras, poses, pattern_spec, env, s)
         ds = _render(rig, out / f"seed_{s}" / "dataset")
-        results = _capture_of(ds, methods, out / f"seed_{s}" / "capture", pattern)
+        results = _capture_of(ds, methods, out / f"seed_{s}" / "capture", pattern,
+                              real.get("calibration_settings", {}))
         trials.append({"capture": results,
                        "scores": _scores(results, out / f"seed_{s}" / "capture", ds)})
     summary = summarize(real, trials, [c.name for c in cameras], method, methods)
