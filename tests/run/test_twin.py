@@ -19,7 +19,8 @@ ROOT = Path(__file__).resolve().parents[2]
 
 TRUE_ENVIRONMENT = {"kind": "clean", "background": 100, "black_level": 30, "white_level": 220,
                     "optics": {"blur_px": 0.6, "corner_illumination": 0.7},
-                    "sensor": {"full_well_e": 3000.0, "exposure": 0.8, "read_noise_e": 8.0}}
+                    "sensor": {"full_well_e": 3000.0, "exposure": 0.8, "read_noise_e": 8.0},
+                    "board": {"warp_mm": [0.8, 0.5]}}
 
 
 @pytest.mark.parametrize("quality", [30, 50, 75, 80, 95])
@@ -33,9 +34,10 @@ def test_jpeg_quality_is_read_from_the_files_tables(tmp_path, quality):
 
 
 def test_the_twin_of_a_rendered_capture_finds_its_imaging_and_its_errors(tmp_path):
-    """A pair rendered under known imaging, calibrated as a capture and twinned: the measured
-    imaging is the true one and the twin's prediction of the calibration's true error holds the
-    capture's own true error."""
+    """A pair rendered under known imaging with a bowed board, calibrated as a capture that fits
+    the warp and twinned: the measured imaging and warp are the true ones, and the twin's
+    prediction of each calibration's true error holds the capture's own true error (opencv's,
+    which keeps the board flat, at several pixels; zhang-brown's at a tenth)."""
     rig = yaml.safe_load((ROOT / "configs" / "quickstart.yaml").read_text())
     rig.update(name="capture", environment=TRUE_ENVIRONMENT)
     rig["trajectory"]["frames"] = 15
@@ -44,8 +46,10 @@ def test_the_twin_of_a_rendered_capture_finds_its_imaging_and_its_errors(tmp_pat
     assert main(["render", str(tmp_path / "rig.yaml"), "--out", str(data)]) == 0
     assert main(["calibrate-images", f"left={data}/images/left", f"right={data}/images/right",
                  "--board", "checkerboard", "--inner-corners", "8x11", "--square-mm", "15",
-                 "--methods", "opencv", "--out", str(capture)]) == 0
-    assert main(["twin", str(capture), "--seeds", "2", "--out", str(twin)]) == 0
+                 "--methods", "opencv,zhang-brown", "--fit-board-warp", "--out", str(capture)]
+                ) == 0
+    assert main(["twin", str(capture), "--method", "zhang-brown", "--seeds", "2", "--out",
+                 str(twin)]) == 0
     results = json.loads((twin / "results.json").read_text())
     measured = results["imaging"]["measured_on_real"]["left"]
     env = results["rig"]["environment"]
@@ -57,20 +61,23 @@ def test_the_twin_of_a_rendered_capture_finds_its_imaging_and_its_errors(tmp_pat
     assert env["sensor"]["read_noise_e"] == pytest.approx(8.0, rel=0.35)
     assert abs(measured["background"] - 100) <= 2 and abs(measured["black_level"] - 30) <= 2
     assert abs(measured["white_level"] - 220) <= 2
+    assert env["board"]["warp_mm"] == pytest.approx([0.8, 0.5], abs=0.02)
     assert results["matches"], results["mismatch"]
     # The capture's own true error lies where the twin's seeds put it.
     truth = {c["name"]: Camera.from_dict(c)
              for c in json.loads((data / "ground_truth" / "cameras.json").read_text())}
-    for name, cam in truth.items():
-        est = Camera.load_json(capture / "calibrations" / "opencv" / f"{name}.json")
-        true_error = projection_difference(est, cam.with_params(rvec=np.zeros(3),
-                                                                tvec=np.zeros(3)))["mean_px"]
-        predicted = results["true_errors"]["opencv"]["cameras"][name]["projection_mean_px"]
+    for method in ("opencv", "zhang-brown"):
+        for name, cam in truth.items():
+            est = Camera.load_json(capture / "calibrations" / method / f"{name}.json")
+            true_error = projection_difference(est, cam.with_params(
+                rvec=np.zeros(3), tvec=np.zeros(3)))["mean_px"]
+            predicted = results["true_errors"][method]["cameras"][name]["projection_mean_px"]
+            print(method, name, true_error, predicted)
+            assert true_error < 4 * predicted["mean"] and predicted["mean"] < 4 * true_error
+    for name in truth:
         twin_rpe = results["side_by_side"][name]["twin"]["rpe_px"]["mean"]
         assert twin_rpe == pytest.approx(results["side_by_side"][name]["real"]["rpe_px"],
-                                         rel=0.1)
-        print(name, true_error, predicted)
-        assert true_error < 4 * predicted["mean"] and predicted["mean"] < 4 * true_error
+                                         rel=0.15)
 
 
 def test_the_twin_of_the_real_opencv_pair_says_it_does_not_match(tmp_path, opencv_pair):
