@@ -29,10 +29,12 @@ the wide camera (each single step gains little before the poses are reset) again
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
 
+from ..core.board_shape import BoardShape
 from ..core.poses import matrix_to_rodrigues
 from ..core.distortion import undistort_normalized
 from .base import CalibrationResult, Observations
@@ -90,12 +92,14 @@ class BouguetCalibrator:
     ``bouguet-rational`` also frees k4..k6, which the toolbox's kc does not have). Every
     coefficient starts at 0, as in the toolbox, so the init does not depend on the model."""
 
+    fits_board_warp = True
     lens_models = tuple(LENS_MODELS)
     own_model = "the toolbox's default model (k1, k2, p1, p2; k3 fixed at 0)"
 
     def __init__(self, est_dist=None, est_alpha: bool = False,
                  two_focals_init: bool = False, recompute_extrinsic: bool = True,
-                 max_recompute: int = 10, max_iter: int = 100, lens_model: str | None = None):
+                 max_recompute: int = 10, max_iter: int = 100, lens_model: str | None = None,
+                 board_warp: bool = False):
         if lens_model is not None:
             if est_dist is not None:
                 raise ValueError(f"bouguet: est_dist {est_dist} and lens_model {lens_model!r} "
@@ -108,6 +112,7 @@ class BouguetCalibrator:
                                  f"got {est_dist}")
             dist = tuple(n for n, e in zip(KC_NAMES, est_dist) if e)
         self.name = method_name("bouguet", lens_model)
+        self.board_warp = board_warp  # also fit the board's warp (refine.py)
         self.est_dist = tuple(n in dist for n in KC_NAMES)
         self.est_alpha = est_alpha
         self.two_focals_init = two_focals_init
@@ -119,14 +124,16 @@ class BouguetCalibrator:
         self.free = free_mask(self.model.param_names, free)
         self.model_parameters = tuple(free)
 
-    def _extrinsics(self, params, obs: Observations):
-        """Every view's pose afresh: compute_extrinsic_init, then compute_extrinsic_refine."""
+    def _extrinsics(self, params, obs: Observations, board=None):
+        """Every view's pose afresh: compute_extrinsic_init, then compute_extrinsic_refine (on
+        the board as fitted so far: ``board``'s warp held)."""
         camera = self.model.camera(params, obs.camera_name, obs.image_size)
         rvecs, tvecs = extrinsic_init(camera, [o[:, :2] for o in obs.object_points],
                                       obs.image_points)
         # The toolbox's compute_extrinsic_refine: 20 iterations at most, relative change 1e-10.
         return refine(self.model, params, np.zeros(len(params), bool), obs.object_points,
-                      obs.image_points, rvecs, tvecs, max_iter=20, xtol=1e-10, ftol=1e-10)
+                      obs.image_points, rvecs, tvecs, max_iter=20, xtol=1e-10, ftol=1e-10,
+                      board=board, fit_warp=False)
 
     def calibrate(self, obs: Observations) -> CalibrationResult:
         t0 = time.perf_counter()
@@ -146,12 +153,16 @@ class BouguetCalibrator:
         starts = np.cumsum(counts) - counts
         view_cost = lambda r: np.add.reduceat(np.sum(r * r, axis=1), starts)
         reinitialized = []
+        board = (BoardShape.of_points(np.concatenate(obs.object_points)) if self.board_warp
+                 else None)
         for _ in range(self.max_recompute + 1):
             res = refine(self.model, params, self.free, obs.object_points, obs.image_points,
-                         rvecs, tvecs, max_iter=self.max_iter)
+                         rvecs, tvecs, max_iter=self.max_iter, board=board)
+            if board is not None:
+                board = dataclasses.replace(board, warp_mm=tuple(res.warp_mm.tolist()))
             if not self.recompute_extrinsic:
                 break
-            fresh = self._extrinsics(res.params, obs)
+            fresh = self._extrinsics(res.params, obs, board)
             # Improvements below 1e-8 px^2 per point are floating-point noise, not a new basin.
             better = view_cost(fresh.residuals) + 1e-8 * counts < view_cost(res.residuals)
             if not np.any(better):

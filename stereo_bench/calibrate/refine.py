@@ -327,20 +327,23 @@ def linearize(model: ProjectionModel, params, free, object_points, image_points,
 
 def refine(model: ProjectionModel, params0, free, object_points, image_points, rvecs0, tvecs0,
            max_iter: int = 100, xtol: float = 1e-15, ftol: float = 1e-15,
-           rcond: float = 1e-10, board: BoardShape | None = None) -> RefineResult:
+           rcond: float = 1e-10, board: BoardShape | None = None,
+           fit_warp: bool = True) -> RefineResult:
     """Levenberg-Marquardt over the free intrinsics and all poses; see the module docstring.
 
     params0 (P,), free (P,) bool, object_points / image_points per view, rvecs0 / tvecs0 (V, 3)
-    cam_from_board. ``board``: also fit the board's warp (w_x, w_y), starting flat, about its
-    feature grid's centre and half-size (the result's ``warp_mm`` and its ``param_std``). Stops when a step changes the cost by less than ``ftol`` relative or the
-    parameters by less than ``xtol`` relative (in Marquardt's scaling), when no damping gives a
-    decrease, or the linear model predicts none by more than ``ftol`` relative or than rounding
-    resolves (the cost is at its floating-point floor), or after ``max_iter`` Jacobians.
+    cam_from_board. ``board``: the board's warp (w_x, w_y) about its feature grid's centre and
+    half-size, starting at ``board.warp_mm``; fitted with ``fit_warp`` (the result's
+    ``warp_mm`` and its ``param_std``), else held. Stops when a step changes the cost by less
+    than ``ftol`` relative or the parameters by less than ``xtol`` relative (in Marquardt's
+    scaling), when no damping gives a decrease, or the linear model predicts none by more than
+    ``ftol`` relative or than rounding resolves (the cost is at its floating-point floor), or
+    after ``max_iter`` Jacobians.
     """
     warp = board is not None
     if warp:
-        params0 = np.r_[np.asarray(params0, dtype=np.float64), 0.0, 0.0]
-        free = np.r_[np.asarray(free, dtype=bool), True, True]
+        params0 = np.r_[np.asarray(params0, dtype=np.float64), board.warp_mm]
+        free = np.r_[np.asarray(free, dtype=bool), fit_warp, fit_warp]
     param_names = tuple(model.param_names) + (WARP_NAMES if warp else ())
     problem = _Problem(model, free, object_points, image_points, board)
     x = np.array(params0, dtype=np.float64)

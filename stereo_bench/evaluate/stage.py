@@ -148,8 +148,10 @@ def save_calibration(result: CalibrationResult, obs: Observations, trial: TrialP
     name = result.camera.name
     result.camera.save_json(trial.calibration(method, name))
     opencv_yaml.write_camera(result.camera, trial.calibration_yaml(method, name))
+    warp = result.log.get("board_warp_mm")  # the rig stage bows its board by it
     write_npz(trial.views(method, name), rvecs=result.rvecs, tvecs=result.tvecs,
-              view_ids=np.array(obs.view_ids))
+              view_ids=np.array(obs.view_ids),
+              **({} if warp is None else {"board_warp_mm": np.asarray(warp)}))
 
 
 def metrics_fingerprint(detections_fp: str, methods: list[str],

@@ -11,6 +11,7 @@ torn stage is redone. ``run`` holds the run directory's lock: a second run into 
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from concurrent.futures import as_completed
 from dataclasses import dataclass
@@ -20,6 +21,7 @@ import numpy as np
 
 from ..calibrate import get_calibrator
 from ..calibrate.base import MIN_POINTS_PER_VIEW
+from ..core.board_shape import BoardShape
 from ..core.camera import Camera
 from ..config.schema import CalibrationConfig, RigConfig
 from ..scene.dataset import Dataset, dataset_fingerprint, write_dataset
@@ -74,6 +76,22 @@ def _by_region(true_pts: np.ndarray, err: np.ndarray, centre: np.ndarray) -> lis
     return rows
 
 
+def fitted_board(object_points: np.ndarray, trial: TrialPaths, method: str, cameras
+                 ) -> np.ndarray:
+    """The board's points (N, 3) as the method's calibrations saw it: bowed by the mean of the
+    warps they fitted (calibration.fit_board_warp), else the nominal ones."""
+    warps = []
+    for cam in cameras:
+        z = read_arrays(trial.views(method, cam.name), "a calibration's views")
+        if "board_warp_mm" in z:
+            warps.append(z["board_warp_mm"])
+    if not warps:
+        return object_points
+    grid = BoardShape.of_points(object_points)
+    shape = dataclasses.replace(grid, warp_mm=tuple(float(w) for w in np.mean(warps, axis=0)))
+    return shape.points(object_points)
+
+
 def rig_of(source, trial: TrialPaths, method: str, calibration: CalibrationConfig,
            names: list[str] | None = None) -> tuple[RigCalibration, np.ndarray]:
     """The rig calibration of one method's per-camera estimates (saved under ``trial`` by
@@ -90,12 +108,13 @@ def rig_of(source, trial: TrialPaths, method: str, calibration: CalibrationConfi
         cams.append(est)
         rv.append(r)
         tv.append(t)
+    board = fitted_board(source.object_points, trial, method, chosen)
     image_points, rvecs, tvecs, found, changes = agree(
-        source.object_points, np.stack([d.points for d in dets]), np.stack(rv), np.stack(tv),
+        board, np.stack([d.points for d in dets]), np.stack(rv), np.stack(tv),
         np.stack([d.found for d in dets]), [c.name for c in chosen],
         identified=source.pattern.kind == "charuco")
     params = get_calibrator(method).model_parameters if calibration.refine_intrinsics else None
-    rig = calibrate_rig(cams, source.object_points, image_points, rvecs, tvecs,
+    rig = calibrate_rig(cams, board, image_points, rvecs, tvecs,
                         found, refine_intrinsics=[params] * len(cams) if params else None,
                         loss=calibration.loss, loss_scale_px=calibration.loss_scale_px)
     rig.log["orientation"] = changes

@@ -38,7 +38,7 @@ from ..config.bounds import ConfigError
 from ..config.schema import RigConfig, parse_rig
 from ..render import AnalyticRenderer, RenderSettings
 from ..render.imaging import Light, Motion, Optics, Sensor
-from .rig import GroundTruth, Rig, Trajectory, coverage_warnings
+from .rig import GroundTruth, Rig, Trajectory, board_as_made, coverage_warnings
 from ..io.rundir import DatasetPaths, changed_output, fingerprint, with_outputs
 from ..core.files import (UnreadableFileError, read_arrays, read_grey, read_json, write_json,
                           write_npy, write_png, write_text)
@@ -268,8 +268,10 @@ class Dataset:
         return img
 
     def rig(self) -> Rig:
+        """The rig the dataset was rendered from, its board as made (so that what is scored
+        against the truth, e.g. RMSE_cal, meets the physical board, not its pattern file)."""
         return Rig(self.config.name, self.config.seed, self.cameras, self.pattern,
-                   self.trajectory, self.closeup_of)
+                   self.trajectory, self.closeup_of, board_as_made(self.config, self.pattern))
 
     def check_images(self) -> None:
         """Refuse a dataset whose images are not the size of their camera (an image replaced

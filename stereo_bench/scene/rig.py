@@ -345,6 +345,12 @@ class GroundTruth:
     visible: np.ndarray
 
 
+def board_as_made(cfg: RigConfig, pattern) -> BoardShape:
+    """The board of a rig file as made (environment.board: its print's scale and its warp)."""
+    b = cfg.environment.board
+    return BoardShape.for_pattern(pattern, b.scale_error_pct, b.aspect_error_pct, b.warp_mm)
+
+
 @dataclass(frozen=True, eq=False)
 class Rig:
     """Everything a render needs: the true cameras, the board and its trajectory.
@@ -388,10 +394,8 @@ class Rig:
             build = dome if cfg.trajectory.kind == "dome" else conical_spring
             trajectory = build(cameras, centre, radius, cfg.trajectory)
             closeup_of = np.full(len(trajectory), -1)
-        b = cfg.environment.board
-        board = BoardShape.for_pattern(pattern, b.scale_error_pct, b.aspect_error_pct,
-                                       b.warp_mm)
-        return cls(cfg.name, cfg.seed, cameras, pattern, trajectory, closeup_of, board)
+        return cls(cfg.name, cfg.seed, cameras, pattern, trajectory, closeup_of,
+                   board_as_made(cfg, pattern))
 
     def board_points_world(self) -> np.ndarray:
         """The physical board's feature points in the world per frame, (F, N, 3) mm."""
