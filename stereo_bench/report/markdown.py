@@ -526,10 +526,19 @@ def twin_markdown(results: dict) -> str:
                      f"{iv(t['heldout_px'])} | {iv(t['neighbour_correlation'], 2)} | "
                      f"{100 * t['residuals_random_share']:.0f} % of seeds | "
                      f"{iv(t['projection_sigma_px'])} |")
+    lines += ["", "Per-view RPE px (10th, 50th, 90th percentile; the twin's views of every seed "
+              "pooled):", ""]
+    for cam, s in results["side_by_side"].items():
+        real = [v for v in (s["view_rpe_px"]["real"] or []) if v is not None]
+        twin = [v for seed in s["view_rpe_px"]["twin"] for v in (seed or []) if v is not None]
+        spread = [", ".join(f"{q:.3g}" for q in np.percentile(v, [10, 50, 90])) if v else "–"
+                  for v in (real, twin)]
+        lines.append(f"- {cam}: real {spread[0]}; twin {spread[1]}")
     img = results["imaging"]
     lines += ["", "Imaging measured on the real images (render/imaging_fit.py) and the twin's "
               "settings:", "", "| camera | black | white | background | gain DN/e | read DN | "
-              "corner illumination | edge σ px | JPEG quality |", "|---|---|---|---|---|---|---|---|---|"]
+              "corner illumination | edge σ px | JPEG quality |",
+              "|---|---|---|---|---|---|---|---|---|"]
     for cam, f in img["measured_on_real"].items():
         lines.append(f"| {cam} | {f['black_level']:.0f} | {f['white_level']:.0f} | "
                      f"{f['background']:.0f} | {num(f['gain_dn_per_e'])} | "
@@ -557,8 +566,8 @@ def twin_markdown(results: dict) -> str:
                          f"{iv(c['fy_err_px'])} | {iv(c['cx_err_px'])} | {iv(c['cy_err_px'])} |")
     rigs = {meth: e["rig"] for meth, e in results["true_errors"].items() if "rig" in e}
     if rigs:
-        lines += ["", "| method | rotation err deg | centre err mm | baseline err mm |",
-                  "|---|---|---|---|"]
-        lines += [f"| {meth} | {iv(r['rotation_deg'])} | {iv(r['centre_mm'])} | "
-                  f"{iv(r['baseline_mm'])} |" for meth, r in rigs.items()]
+        lines += ["", "| method | RMSE_cal mm | rotation err deg | centre err mm | "
+                  "baseline err mm |", "|---|---|---|---|---|"]
+        lines += [f"| {meth} | {iv(r['rmse_cal_mm'])} | {iv(r['rotation_deg'])} | "
+                  f"{iv(r['centre_mm'])} | {iv(r['baseline_mm'])} |" for meth, r in rigs.items()]
     return "\n".join(lines) + "\n"

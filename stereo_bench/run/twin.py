@@ -254,8 +254,9 @@ def _capture_of(ds, methods, out: Path, pattern, settings: dict) -> dict:
 def _scores(capture_results: dict, capture_out: Path, ds) -> dict:
     """Per method: per camera its true projection difference and intrinsics errors; for a rig,
     per camera its rotation and centre errors."""
+    from ..detect.dataset import CameraDetections
     from ..evaluate.metrics import parameter_errors, projection_difference
-    from ..multiview.bundle import rig_errors
+    from .pipeline import score_rig, triangulated_board
 
     truth = {c.name: c for c in ds.cameras}
     out = {}
@@ -273,8 +274,15 @@ def _scores(capture_results: dict, capture_out: Path, ds) -> dict:
         if len(truth) > 1 and rig_file.exists():
             est = [Camera.from_dict(c) for c in json.loads(rig_file.read_text())["cameras"]]
             if [c.name for c in est] == list(truth):
-                err = rig_errors(est, list(truth.values()))
-                entry["rig"] = {k: np.asarray(v).tolist() for k, v in err.items()}
+                # The twin's detections triangulated through the method's rig, scored as a run
+                # scores its rigs: RMSE_cal against the physical board, the cameras' errors.
+                dets = np.stack([CameraDetections.load(capture_out / "detections"
+                                                       / f"{name}.npz").points
+                                 for name in truth])
+                scored = score_rig(est, triangulated_board(est, dets)[0], ds)
+                entry["rig"] = {"rmse_cal_mm": scored["rmse_cal_mm"],
+                                **{k: np.asarray(v).tolist()
+                                   for k, v in scored["rig_errors"].items()}}
         out[m] = entry
     return out
 
@@ -397,8 +405,10 @@ def summarize(real: dict, trials: list[dict], cameras: list[str], method: str,
         rigs = [r for r in rigs if r]
         entry = {"cameras": per_cam}
         if rigs:
-            entry["rig"] = {k: interval([max(np.abs(r[k][1:])) for r in rigs])
+            # The worst camera's errors (camera 0, the reference, has none).
+            entry["rig"] = {k: interval([max(np.abs(r[k])) for r in rigs])
                             for k in ("rotation_deg", "centre_mm", "baseline_mm")}
+            entry["rig"]["rmse_cal_mm"] = interval([r["rmse_cal_mm"] for r in rigs])
         errors[m] = entry
     return {"side_by_side": side, "matches": not mismatch, "mismatch": mismatch,
             "true_errors": errors}
