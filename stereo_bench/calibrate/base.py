@@ -8,7 +8,6 @@ cam_from_board pose per view, and a log of how the estimate was reached.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -84,7 +83,7 @@ class CalibrationResult:
     rvecs, tvecs: (V, 3) cam_from_board per view, in the order of ``Observations.view_ids``.
     log: method, iterations, initial/final cost, rms_px, time_s, notes and, when the method ends
     with refine.py, per-parameter standard deviations and the rank of the intrinsic block (and
-    ``board_warp_mm`` when it fitted the board's warp).
+    ``board_warp_mm``, ``board_aspect_error_pct`` when it fitted the board's shape).
     """
 
     camera: Camera
@@ -94,12 +93,10 @@ class CalibrationResult:
 
     def board_points(self, obs: "Observations") -> list[np.ndarray]:
         """Each view's board points (N_i, 3) as the calibration saw the board: the nominal
-        ones, or warped by the board warp it fitted (``log["board_warp_mm"]``)."""
-        warp = self.log.get("board_warp_mm")
-        if warp is None:
+        ones, or shaped by the warp and aspect error it fitted (``log["board_warp_mm"]``)."""
+        shape = fitted_shape(np.concatenate(obs.object_points), [self.log])
+        if shape is None:
             return list(obs.object_points)
-        grid = BoardShape.of_points(np.concatenate(obs.object_points))
-        shape = dataclasses.replace(grid, warp_mm=tuple(float(w) for w in warp))
         return [shape.points(o) for o in obs.object_points]
 
 
@@ -117,3 +114,13 @@ class Calibrator(Protocol):
     own_model: str
 
     def calibrate(self, obs: Observations) -> CalibrationResult: ...
+
+
+def fitted_shape(object_points: np.ndarray, logs) -> BoardShape | None:
+    """The board's shape (its grid from ``object_points``) as calibrations fitted it: the mean
+    of the warps and aspect errors in their ``logs``; None when none fitted it."""
+    fits = [[*log["board_warp_mm"], log.get("board_aspect_error_pct", 0.0)]
+            for log in logs if "board_warp_mm" in log]
+    if not fits:
+        return None
+    return BoardShape.of_points(object_points).with_fit(np.mean(fits, axis=0))

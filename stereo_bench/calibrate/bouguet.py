@@ -29,7 +29,6 @@ the wide camera (each single step gains little before the poses are reset) again
 
 from __future__ import annotations
 
-import dataclasses
 import time
 
 import numpy as np
@@ -159,7 +158,7 @@ class BouguetCalibrator:
             res = refine(self.model, params, self.free, obs.object_points, obs.image_points,
                          rvecs, tvecs, max_iter=self.max_iter, board=board)
             if board is not None:
-                board = dataclasses.replace(board, warp_mm=tuple(res.warp_mm.tolist()))
+                board = board.with_fit(res.board)
             if not self.recompute_extrinsic:
                 break
             fresh = self._extrinsics(res.params, obs, board)

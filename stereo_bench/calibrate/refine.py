@@ -23,11 +23,11 @@ the Schur complement on the intrinsics (invariant under an invertible change of 
 parameters), are the same; :func:`linearize` and :func:`intrinsic_information` give rvec
 Jacobians, as their callers expect.
 
-With ``board`` (a BoardShape giving the feature grid's centre and half-size), the board's warp
-(mrcal's two-parabola deflection w_x, w_y in mm, core/board_shape.py) joins the shared
-parameters, after the model's: the board's points sit at z = warp_basis(xy) . w in every view,
-so d uv / d w = d uv / d points_cam . R[:, 2] warp_basis(xy). A flat board is the same problem
-with w fixed at 0.
+With ``board`` (a BoardShape giving the feature grid's centre and half-size), the board's shape
+joins the shared parameters, after the model's: its warp (mrcal's two-parabola deflection w_x,
+w_y in mm) and the stretch of its y axis against its x axis (a misprint along the paper feed, %),
+core/board_shape.py's FIT_NAMES; d uv / d shape = d uv / d points_cam . R . d points / d shape.
+A flat, true board is the same problem with the shape held at 0.
 
 An iteration costs one Jacobian, the per-view blocks of the normal equations as batched
 (V, 6, 6) products, and per trial step one projection without Jacobians. At the cost's floor a
@@ -49,7 +49,7 @@ from ..core.poses import matrix_to_rodrigues, rodrigues_to_matrix, rotate_jacobi
 
 
 EPS = np.finfo(np.float64).eps
-WARP_NAMES = ("warp_x_mm", "warp_y_mm")
+BOARD_NAMES = BoardShape.FIT_NAMES
 
 
 class ProjectionModel(Protocol):
@@ -104,7 +104,7 @@ class RefineResult:
     residuals: (N_total, 2) projected - observed pixels, views concatenated in order.
     param_std: (P,) standard deviations (residual variance times the inverse information);
         NaN for fixed parameters, inf for parameters in the numerical null space; with a
-        fitted warp, P includes w_x, w_y last (``param_names`` names them).
+        fitted board shape, P includes its FIT_NAMES last (``param_names`` names them).
     jacobian_rank_info: rank, n_free, condition, rcond and the unidentifiable parameter names of
         the intrinsic information matrix (scale-normalized, poses marginalized).
     """
@@ -121,7 +121,7 @@ class RefineResult:
     jacobian_rank_info: dict
     param_names: tuple[str, ...]
     stop_reason: str
-    warp_mm: np.ndarray | None = None  # (w_x, w_y) when the board's warp was fitted
+    board: np.ndarray | None = None  # (w_x, w_y, aspect %) when the board's shape was fitted
 
     def log(self) -> dict:
         """The fields every refining method puts in CalibrationResult.log."""
@@ -134,7 +134,8 @@ class RefineResult:
             "param_std": {n: float(s) for n, s in zip(self.param_names, self.param_std)
                           if not np.isnan(s)},
             "rank": self.jacobian_rank_info,
-            **({} if self.warp_mm is None else {"board_warp_mm": self.warp_mm.tolist()}),
+            **({} if self.board is None else {"board_warp_mm": self.board[:2].tolist(),
+                                              "board_aspect_error_pct": float(self.board[2])}),
         }
 
 
@@ -146,8 +147,9 @@ class _Problem:
         self.free = np.asarray(free, dtype=bool)
         self.n_model = len(model.param_names)
         self.points = np.concatenate(object_points)
-        # d z / d warp of each point (N, 2), with board; None for a flat board.
-        self.basis = None if board is None else board.warp_basis(self.points[:, :2])
+        # The board's shape (its grid) and d point / d shape (N, 3, 3); None for a true board.
+        self.shape = board
+        self.basis = None if board is None else board.fit_jacobian(self.points[:, :2])
         self.observed = np.concatenate(image_points)
         self.magnitude = np.abs(self.observed).ravel() + 1.0  # (2N,) for refine's resolution
         counts = np.array([len(p) for p in object_points])
@@ -171,10 +173,10 @@ class _Problem:
         return points.reshape(self.layout[0], -1, points.shape[-1])
 
     def _board_points(self, params):
-        """The board's points (N, 3) as the shared parameters shape them (warped or flat)."""
-        if self.basis is None:
+        """The board's points (N, 3) as the shared parameters shape them (or the nominal ones)."""
+        if self.shape is None:
             return self.points
-        return np.column_stack([self.points[:, :2], self.basis @ params[self.n_model:]])
+        return self.shape.with_fit(params[self.n_model:]).points(self.points)
 
     def _points_cam(self, params, rvecs, tvecs):
         """Each point in its view's camera frame (N, 3), through one (n_max, 3) x (3, 3)
@@ -184,13 +186,13 @@ class _Problem:
         return Pc.reshape(-1, 3) if self.padding is None else Pc[self.padding < len(self.points)]
 
     def _project(self, params, Pc, rvecs, jacobians=True):
-        """The model's projection; its parameter Jacobian with the warp's columns appended."""
+        """The model's projection; its parameter Jacobian with the board shape's columns
+        appended."""
         uv, J_params, J_point = self.model.project(params[:self.n_model], Pc, jacobians)
         if jacobians and self.basis is not None:
-            normal = rodrigues_to_matrix(rvecs)[self.view, :, 2]  # (N, 3): the board's z axis
-            along = np.einsum("nij,nj->ni", J_point, normal)
-            J_params = np.concatenate([J_params, along[:, :, None] * self.basis[:, None, :]],
-                                      -1)
+            R = rodrigues_to_matrix(rvecs)[self.view]  # (N, 3, 3): each point's view
+            J_shape = np.einsum("nij,njk,nkl->nil", J_point, R, self.basis)
+            J_params = np.concatenate([J_params, J_shape], -1)
         return uv, J_params, J_point
 
     def residuals(self, params, rvecs, tvecs, jacobians=False):
@@ -332,26 +334,26 @@ def refine(model: ProjectionModel, params0, free, object_points, image_points, r
     """Levenberg-Marquardt over the free intrinsics and all poses; see the module docstring.
 
     params0 (P,), free (P,) bool, object_points / image_points per view, rvecs0 / tvecs0 (V, 3)
-    cam_from_board. ``board``: the board's warp (w_x, w_y) about its feature grid's centre and
-    half-size, starting at ``board.warp_mm``; fitted with ``fit_warp`` (the result's
-    ``warp_mm`` and its ``param_std``), else held. Stops when a step changes the cost by less
-    than ``ftol`` relative or the parameters by less than ``xtol`` relative (in Marquardt's
+    cam_from_board. ``board``: the board's shape (warp and aspect error, BoardShape.FIT_NAMES)
+    about its feature grid's centre and half-size, starting at ``board``'s own; fitted with
+    ``fit_warp`` (the result's ``board`` and its ``param_std``), else held. Stops when a step
+    changes the cost by less than ``ftol`` relative or the parameters by less than ``xtol`` relative (in Marquardt's
     scaling), when no damping gives a decrease, or the linear model predicts none by more than
     ``ftol`` relative or than rounding resolves (the cost is at its floating-point floor), or
     after ``max_iter`` Jacobians.
     """
     warp = board is not None
     if warp:
-        params0 = np.r_[np.asarray(params0, dtype=np.float64), board.warp_mm]
-        free = np.r_[np.asarray(free, dtype=bool), fit_warp, fit_warp]
-    param_names = tuple(model.param_names) + (WARP_NAMES if warp else ())
+        params0 = np.r_[np.asarray(params0, dtype=np.float64), board.fit_params]
+        free = np.r_[np.asarray(free, dtype=bool), [fit_warp] * len(BOARD_NAMES)]
+    param_names = tuple(model.param_names) + (BOARD_NAMES if warp else ())
     problem = _Problem(model, free, object_points, image_points, board)
     x = np.array(params0, dtype=np.float64)
     rv, tv = np.array(rvecs0, dtype=np.float64), np.array(tvecs0, dtype=np.float64)
     if len(x) != len(param_names) or problem.free.shape != x.shape:
         raise ValueError(f"params0 and free must have {len(model.param_names)} entries "
-                         f"{model.param_names}, got {len(x) - 2 * warp} and "
-                         f"{problem.free.shape[0] - 2 * warp}")
+                         f"{model.param_names}, got {len(x) - len(BOARD_NAMES) * warp} and "
+                         f"{problem.free.shape[0] - len(BOARD_NAMES) * warp}")
     if rv.shape != (len(object_points), 3) or tv.shape != rv.shape:
         raise ValueError(f"rvecs0 and tvecs0 must be ({len(object_points)}, 3), "
                          f"got {rv.shape} and {tv.shape}")

@@ -24,6 +24,7 @@ warp are not absorbed by any pose and show in the reprojection error.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -71,6 +72,28 @@ class BoardShape:
     @property
     def is_nominal(self) -> bool:
         return self.scale == (1.0, 1.0) and self.warp_mm == (0.0, 0.0)
+
+    #: What a calibration can fit of a board's shape (refine.py): its warp and the stretch of its
+    #: y axis against its x axis (an isotropic scale is not seen: a larger board farther away
+    #: makes the same images).
+    FIT_NAMES = ("warp_x_mm", "warp_y_mm", "aspect_error_pct")
+
+    @property
+    def fit_params(self) -> np.ndarray:
+        """(w_x, w_y, aspect error %) of this shape."""
+        return np.array([*self.warp_mm, 100.0 * (self.scale[1] / self.scale[0] - 1.0)])
+
+    def with_fit(self, params) -> "BoardShape":
+        """This grid with the warp and the aspect error ``params`` (FIT_NAMES), x unscaled."""
+        w_x, w_y, aspect = (float(p) for p in params)
+        return dataclasses.replace(self, scale=(1.0, 1.0 + aspect / 100.0), warp_mm=(w_x, w_y))
+
+    def fit_jacobian(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 3, 3): d points / d FIT_NAMES at nominal xy (N, 2), about an unscaled x."""
+        J = np.zeros(xy.shape[:-1] + (3, 3))
+        J[..., 2, :2] = self.warp_basis(xy)
+        J[..., 1, 2] = (xy[..., 1] - self.centre_mm[1]) / 100.0
+        return J
 
     def warp_basis(self, xy: np.ndarray) -> np.ndarray:
         """(..., 2): d z' / d (w_x, w_y) at nominal board points xy (..., 2); the height is

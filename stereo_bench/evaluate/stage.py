@@ -148,10 +148,11 @@ def save_calibration(result: CalibrationResult, obs: Observations, trial: TrialP
     name = result.camera.name
     result.camera.save_json(trial.calibration(method, name))
     opencv_yaml.write_camera(result.camera, trial.calibration_yaml(method, name))
-    warp = result.log.get("board_warp_mm")  # the rig stage bows its board by it
+    # The board's shape it fitted, which the rig stage gives its board (pipeline.fitted_board).
+    shape = {k: np.asarray(result.log[k]) for k in ("board_warp_mm", "board_aspect_error_pct")
+             if k in result.log}
     write_npz(trial.views(method, name), rvecs=result.rvecs, tvecs=result.tvecs,
-              view_ids=np.array(obs.view_ids),
-              **({} if warp is None else {"board_warp_mm": np.asarray(warp)}))
+              view_ids=np.array(obs.view_ids), **shape)
 
 
 def metrics_fingerprint(detections_fp: str, methods: list[str],

@@ -422,11 +422,13 @@ def capture_markdown(results: dict, title: str) -> str:
                  if "board_warp_mm" in (e := results["calibration"][m].get(cam, {})).get("log",
                                                                                          {})]
         if warps:
-            lines += ["Board warp fitted (mrcal's two-parabola bow of the feature grid's centre, "
-                      "mm, ± 1σ): " + "; ".join(
+            lines += ["Board shape fitted (mrcal's two-parabola bow of the feature grid's centre "
+                      "w_x, w_y mm, and its y axis stretched against x, %; ± 1σ): " + "; ".join(
                           f"{m} " + ", ".join(
-                              f"{w:.3f} ± {log['param_std'].get(n, float('nan')):.3f}"
-                              for w, n in zip(log["board_warp_mm"], ("warp_x_mm", "warp_y_mm")))
+                              f"{v:.3f} ± {log['param_std'].get(n, float('nan')):.3f}"
+                              for v, n in zip([*log["board_warp_mm"],
+                                               log.get("board_aspect_error_pct", 0.0)],
+                                              ("warp_x_mm", "warp_y_mm", "aspect_error_pct")))
                           for m, log in warps) + ".", ""]
         flagged = [(m, v) for m in results["methods"]
                    for v in results["calibration"][m].get(cam, {}).get("diagnostics", {})

@@ -11,7 +11,6 @@ torn stage is redone. ``run`` holds the run directory's lock: a second run into 
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from concurrent.futures import as_completed
 from dataclasses import dataclass
@@ -20,8 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..calibrate import get_calibrator
-from ..calibrate.base import MIN_POINTS_PER_VIEW
-from ..core.board_shape import BoardShape
+from ..calibrate.base import MIN_POINTS_PER_VIEW, fitted_shape
 from ..core.camera import Camera
 from ..config.schema import CalibrationConfig, RigConfig
 from ..scene.dataset import Dataset, dataset_fingerprint, write_dataset
@@ -78,18 +76,13 @@ def _by_region(true_pts: np.ndarray, err: np.ndarray, centre: np.ndarray) -> lis
 
 def fitted_board(object_points: np.ndarray, trial: TrialPaths, method: str, cameras
                  ) -> np.ndarray:
-    """The board's points (N, 3) as the method's calibrations saw it: bowed by the mean of the
-    warps they fitted (calibration.fit_board_warp), else the nominal ones."""
-    warps = []
-    for cam in cameras:
-        z = read_arrays(trial.views(method, cam.name), "a calibration's views")
-        if "board_warp_mm" in z:
-            warps.append(z["board_warp_mm"])
-    if not warps:
-        return object_points
-    grid = BoardShape.of_points(object_points)
-    shape = dataclasses.replace(grid, warp_mm=tuple(float(w) for w in np.mean(warps, axis=0)))
-    return shape.points(object_points)
+    """The board's points (N, 3) as the method's calibrations saw it: shaped by the mean of the
+    warps and aspect errors they fitted (calibration.fit_board_warp), else the nominal ones."""
+    logs = [{k: v.tolist() for k, v in read_arrays(trial.views(method, cam.name),
+                                                     "a calibration's views").items()}
+            for cam in cameras]
+    shape = fitted_shape(object_points, logs)
+    return object_points if shape is None else shape.points(object_points)
 
 
 def rig_of(source, trial: TrialPaths, method: str, calibration: CalibrationConfig,

@@ -37,6 +37,7 @@ import cv2
 import numpy as np
 from scipy import stats
 
+from ..calibrate.base import fitted_shape
 from ..core.camera import Camera
 from ..core.patterns import Checkerboard, pattern_from_config
 from ..core.poses import compose, invert, matrix_to_rodrigues, rodrigues_to_matrix
@@ -322,10 +323,12 @@ def run_twin(capture: Path, method: str, seeds: int, out: Path, progress=print) 
     fits = measure_images(capture, cameras, views, pattern)
     env, calibration = calibrated_environment(name, cameras, poses, pattern_spec, pattern, fits,
                                               out / "calibration")
-    warps = [e["log"]["board_warp_mm"] for e in real["calibration"][method].values()
-             if "board_warp_mm" in e.get("log", {})]
-    if warps:  # the capture fitted its board's warp (--fit-board-warp): the twin's board bows so
-        env["board"] = {"warp_mm": np.mean(warps, axis=0).round(4).tolist()}
+    shape = fitted_shape(pattern.object_points(), [e.get("log", {}) for e in
+                                                   real["calibration"][method].values()])
+    if shape is not None:  # the capture fitted its board (--fit-board-warp): so is the twin's
+        w_x, w_y, aspect = shape.fit_params
+        env["board"] = {"warp_mm": [round(w_x, 4), round(w_y, 4)],
+                        "aspect_error_pct": round(float(aspect), 4)}
     methods = real["methods"]
     trials = []
     for s in range(seeds):

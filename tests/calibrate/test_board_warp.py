@@ -1,7 +1,8 @@
-"""The board's warp fitted in calibration (refine.py's ``board``; zhang's ``board_warp``;
-``calibration.fit_board_warp``): on renders of a board bowed by a known amount (mrcal's
-two-parabola model, render/imaging's board), the estimate recovers the bow within its own 2
-sigma, the RPE falls to a flat board's and so does the projection difference."""
+"""The board's shape fitted in calibration (refine.py's ``board``; zhang's and bouguet's
+``board_warp``; ``calibration.fit_board_warp``): on renders of a board bowed and stretched by a
+known amount (mrcal's two-parabola warp and an aspect error, render/imaging's board), the
+estimate recovers both within its own 2 sigma, the RPE falls to a flat board's and so does the
+projection difference."""
 
 import json
 from pathlib import Path
@@ -17,7 +18,8 @@ RIG = Path(__file__).resolve().parents[2] / "configs" / "paper" / "wide_mono.yam
 def run(tmp_path, warp, fit, method="zhang-brown"):
     rig = yaml.safe_load(RIG.read_text())
     rig["trajectory"]["frames"] = 40
-    rig["environment"] = {"kind": "clean", "board": {"warp_mm": [warp, 0.6 * warp]}}
+    rig["environment"] = {"kind": "clean", "board": {"warp_mm": [warp, 0.6 * warp],
+                                                     "aspect_error_pct": 0.2 * warp}}
     rig["calibration"] = {"fit_board_warp": fit}
     path = tmp_path / f"rig_{warp}_{fit}.yaml"
     path.write_text(yaml.safe_dump(rig))
@@ -42,6 +44,9 @@ def test_a_bowed_board_is_recovered_and_its_cost_removed(tmp_path, flat, warp):
           bowed["projection_difference"]["mean_px"], fitted["projection_difference"]["mean_px"])
     assert abs(w[0] - warp) < 2 * std["warp_x_mm"] + 0.01
     assert abs(w[1] - 0.6 * warp) < 2 * std["warp_y_mm"] + 0.01
+    aspect = fitted["log"]["board_aspect_error_pct"]
+    print("aspect", aspect, std["aspect_error_pct"])
+    assert abs(aspect - 0.2 * warp) < 2 * std["aspect_error_pct"] + 0.005
     # The bow's cost: the flat fit's RPE and projection difference grow with it; fitted, both
     # are back at the flat board's.
     assert bowed["rpe_rms_px"] > 2 * flat["rpe_rms_px"]
@@ -60,7 +65,7 @@ def test_bouguet_fits_the_warp_too(tmp_path):
 
 
 def test_the_warps_jacobian_matches_finite_differences():
-    """d residuals / d (w_x, w_y) of refine's problem against central differences."""
+    """d residuals / d (w_x, w_y, aspect) of refine's problem against central differences."""
     import numpy as np
 
     from stereo_bench.calibrate.refine import CameraModel, _Problem
@@ -74,14 +79,14 @@ def test_the_warps_jacobian_matches_finite_differences():
     rv = rng.normal(0, 0.3, (3, 3))
     tv = np.array([[-60.0, -80.0, 400.0], [-40.0, -60.0, 350.0], [-70.0, -90.0, 450.0]])
     model = CameraModel("opencv")
-    free = np.r_[np.zeros(len(model.param_names), bool), True, True]
+    free = np.r_[np.zeros(len(model.param_names), bool), True, True, True]
     problem = _Problem(model, free, [obj] * 3, [np.zeros((len(obj), 2))] * 3,
                        BoardShape.of_points(obj))
-    x = np.r_[model.params_of(cam), 0.7, -0.4]
+    x = np.r_[model.params_of(cam), 0.7, -0.4, 0.3]
     J = problem.residuals(x, rv, tv, jacobians=True)[1]
-    for k in range(2):
+    for k in range(3):
         dx = np.zeros_like(x)
-        dx[-2 + k] = 1e-6
+        dx[-3 + k] = 1e-6
         fd = (problem.residuals(x + dx, rv, tv) - problem.residuals(x - dx, rv, tv)) / 2e-6
         assert np.abs(J[:, :, k] - fd).max() < 1e-6 * np.abs(fd).max()
 
