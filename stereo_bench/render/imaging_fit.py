@@ -99,6 +99,7 @@ class ViewSamples:
     black: np.ndarray
     edge_sigmas: np.ndarray
     background: np.ndarray            # (K, 3): u, v, grey level of pixels off the board
+    depth_mm: float                   # the board's centre along the optical axis
 
 
 def view_samples(image: np.ndarray, camera: Camera, rvec, tvec, board: Checkerboard
@@ -133,7 +134,10 @@ def view_samples(image: np.ndarray, camera: Camera, rvec, tvec, board: Checkerbo
         colours.append(is_black)
     return ViewSamples(np.array(means), np.array(variances), np.array(positions).reshape(-1, 2),
                        np.array(colours, bool), _edge_sigmas(img, camera, rvec, tvec, board),
-                       _off_board(img, camera, rvec, tvec, board))
+                       _off_board(img, camera, rvec, tvec, board),
+                       float((rodrigues_to_matrix(np.asarray(rvec))
+                              @ np.r_[board.object_points().mean(0)[:2], 0.0]
+                              + np.asarray(tvec))[2]))
 
 
 def _off_board(img: np.ndarray, camera: Camera, rvec, tvec, board: Checkerboard,
@@ -211,6 +215,7 @@ class ImagingFit:
     corner_illumination: float
     edge_sigma_px: float
     jpeg_quality: int | None
+    defocus: dict | None            # the edge width against depth (fit_defocus), or None
     patches: int
     edges: int
 
@@ -270,4 +275,45 @@ def fit_imaging(samples: list[ViewSamples], camera: Camera, quality: int | None
         read_noise_dn=float(np.sqrt(max(read2, 0.0))),
         corner_illumination=corner,
         edge_sigma_px=float(np.median(sig)) if sig.size else float("nan"),
-        jpeg_quality=quality, patches=int(means.size), edges=int(sig.size))
+        jpeg_quality=quality,
+        defocus=fit_defocus(np.array([s.depth_mm for s in samples]),
+                            np.array([np.nanmedian(s.edge_sigmas) if np.isfinite(
+                                s.edge_sigmas).any() else np.nan for s in samples])),
+        patches=int(means.size), edges=int(sig.size))
+
+
+DEFOCUS_MIN_PX = 0.15  # a depth-dependent part of the edge width below this is not reported
+
+
+def fit_defocus(depth_mm: np.ndarray, sigma_px: np.ndarray) -> dict | None:
+    """The thin lens's defocus (imaging.Optics) from each view's edge width against its depth:
+    sigma^2 = s0^2 + (c / 4)^2, c = K |1/d_f - 1/d| the blur disc's diameter (px; a disc of
+    radius c/2 spreads an edge by c/4), K = fx f / N (px mm). Returns {sigma0_px, k_px_mm,
+    focus_mm} when the depth explains at least DEFOCUS_MIN_PX of width over the views' depths,
+    else None (the width is then a lens blur alone)."""
+    ok = np.isfinite(depth_mm) & np.isfinite(sigma_px) & (depth_mm > 0)
+    d, sig = depth_mm[ok], sigma_px[ok]
+    if len(d) < 5 or d.max() < 1.2 * d.min():
+        return None
+    inv = 1.0 / d
+
+    def residual(x):
+        s0, log_k, inv_f = x
+        c = np.exp(log_k) * np.abs(inv_f - inv)
+        return np.sqrt(s0 ** 2 + (c / 4) ** 2) - sig
+
+    best = None
+    for inv_f in np.linspace(inv.min(), inv.max(), 5):  # the focus: try starts across the views
+        fit = least_squares(residual, [float(np.min(sig)), np.log(10 * d.mean()), inv_f],
+                            loss="soft_l1", f_scale=0.05,
+                            bounds=([0.0, np.log(1e-3), 0.2 * inv.min()],
+                                    [5.0, np.log(1e9), 5 * inv.max()]))
+        if best is None or fit.cost < best.cost:
+            best = fit
+    s0, log_k, inv_f = best.x
+    c = np.exp(log_k) * np.abs(inv_f - inv)
+    if np.sqrt(s0 ** 2 + (c.max() / 4) ** 2) - np.sqrt(s0 ** 2 + (c.min() / 4) ** 2) \
+            < DEFOCUS_MIN_PX:
+        return None
+    return {"sigma0_px": float(s0), "k_px_mm": float(np.exp(log_k)),
+            "focus_mm": float(1.0 / inv_f)}

@@ -8,7 +8,9 @@ replicates it (:func:`twin_rig`):
 * the board as described, at the poses that calibration estimated for each frame (a ``poses``
   trajectory; a frame no camera has a pose for is left out);
 * the imaging measured on the user's own images (render/imaging_fit.py): the print's levels and
-  the background, the noise against signal, the vignetting, the edge width and the JPEG quality.
+  the background, the noise against signal, the vignetting, the edge width (a lens blur, plus
+  a thin lens's defocus where the width grows with the board's distance from a focus) and the
+  JPEG quality.
   A rig file has one environment: the cameras' figures are averaged. The measured figures are
   of the images; the settings that reproduce them are found by rendering the twin once,
   measuring it the same way and correcting (:func:`calibrated_environment`): the edge width by
@@ -38,6 +40,7 @@ import numpy as np
 from scipy import stats
 
 from ..calibrate.base import fitted_shape
+from ..config.schema import OpticsConfig
 from ..core.camera import Camera
 from ..core.patterns import Checkerboard, pattern_from_config
 from ..core.poses import compose, invert, matrix_to_rodrigues, rodrigues_to_matrix
@@ -136,11 +139,25 @@ def measure_views(cam: Camera, views, pattern, path_of) -> ImagingFit:
     return fit_imaging(samples, cam, jpeg_quality(path))
 
 
-def environment(fits: dict[str, ImagingFit], blur_px: float, gain: float | None,
-                read_dn: float) -> dict:
+def environment(fits: dict[str, ImagingFit], cameras: list[Camera], blur_px: float,
+                gain: float | None, read_dn: float) -> dict:
     """The rig file's environment of the measured imaging (averaged over cameras), with the
-    lens blur and the sensor's gain and read noise as given (the calibrated settings)."""
+    lens blur and the sensor's gain and read noise as given (the calibrated settings). Where
+    the edge width grows with defocus (ImagingFit.defocus), the thin lens that gives it: at the
+    optics' nominal focal length f, the f-number N = fx f / K, focused at the fitted distance."""
     f = list(fits.values())
+    optics = {"blur_px": round(float(blur_px), 4),
+              "corner_illumination": round(float(np.mean([x.corner_illumination for x in f])),
+                                           4)}
+    fx = {c.name: c.fx for c in cameras}
+    lenses = [(fx[name], x.defocus) for name, x in fits.items() if x.defocus]
+    if lenses:
+        focal = OpticsConfig().focal_length_mm
+        optics.update(focal_length_mm=focal,
+                      f_number=round(float(np.mean([f_x * focal / d["k_px_mm"]
+                                                    for f_x, d in lenses])), 4),
+                      focus_distance_mm=round(float(np.mean([d["focus_mm"]
+                                                             for _, d in lenses])), 2))
     white = float(np.mean([x.white_level for x in f]))
     black = float(np.mean([x.black_level for x in f]))
     quality = [x.jpeg_quality for x in f if x.jpeg_quality is not None]
@@ -154,16 +171,16 @@ def environment(fits: dict[str, ImagingFit], blur_px: float, gain: float | None,
         sensor.update(noise_sigma=read_dn)
     return {"kind": "clean", "background": int(round(np.mean([x.background for x in f]))),
             "black_level": int(round(black)), "white_level": int(round(white)),
-            "optics": {"blur_px": round(float(blur_px), 4),
-                       "corner_illumination": round(float(np.mean(
-                           [x.corner_illumination for x in f])), 4)},
-            "sensor": sensor}
+            "optics": optics, "sensor": sensor}
 
 
 def _mean_fit(fits: dict[str, ImagingFit]) -> tuple[float, float | None, float]:
+    """(the edge width a lens blur must give: the depth-independent part where defocus was
+    fitted, else the median width; the gain; the read noise), averaged over cameras."""
     f = list(fits.values())
     gains = [x.gain_dn_per_e for x in f if x.gain_dn_per_e is not None]
-    return (float(np.nanmean([x.edge_sigma_px for x in f])),
+    return (float(np.nanmean([x.defocus["sigma0_px"] if x.defocus else x.edge_sigma_px
+                              for x in f])),
             float(np.mean(gains)) if gains else None,
             float(np.mean([x.read_noise_dn for x in f])))
 
@@ -223,7 +240,7 @@ def calibrated_environment(name, cameras, poses, pattern_spec, pattern, fits, ou
     corrected (module notes)."""
     sigma, gain, read = _mean_fit(fits)
     first = _render(twin_rig(name, cameras, poses, pattern_spec,
-                             environment(fits, 0.0, gain, read), 0), out)
+                             environment(fits, cameras, 0.0, gain, read), 0), out)
     views = _true_views(first, poses)
     measured = {cam.name: measure_views(cam.with_params(rvec=np.zeros(3), tvec=np.zeros(3)),
                                         views[cam.name], pattern,
@@ -234,7 +251,7 @@ def calibrated_environment(name, cameras, poses, pattern_spec, pattern, fits, ou
     if gain is not None and gain0 is not None:
         gain = gain * gain / gain0
     read = read * read / read0 if read0 > 0 else read
-    return environment(fits, blur, gain, read), {
+    return environment(fits, cameras, blur, gain, read), {
         "measured_on_real": {c: f.as_dict() for c, f in fits.items()},
         "measured_on_uncorrected_twin": {c: f.as_dict() for c, f in measured.items()},
         "edge_sigma_px": {"real": sigma, "rendered_without_blur": sigma0, "blur_px": blur}}

@@ -97,3 +97,19 @@ def test_the_twin_of_the_real_opencv_pair_says_it_does_not_match(tmp_path, openc
                for m in results["mismatch"])
     report = (tmp_path / "twin" / "report.md").read_text()
     assert "The twin does not match" in report and "How far each" not in report
+
+
+def test_the_defocus_fit_finds_the_thin_lens_from_edge_widths():
+    """fit_defocus on edge widths that follow the thin lens (K = fx f / N = 4000 px mm, focused
+    at 450 mm, a 0.6 px lens blur) with 0.02 px of scatter; and a width that does not grow with
+    depth is left to the lens blur."""
+    from stereo_bench.render.imaging_fit import fit_defocus
+
+    depth = np.linspace(300, 650, 25)
+    width = np.sqrt(0.6 ** 2 + (4000 * np.abs(1 / 450 - 1 / depth) / 4) ** 2)
+    noisy = width + np.random.default_rng(1).normal(0, 0.02, depth.size)
+    fit = fit_defocus(depth, noisy)
+    assert fit["k_px_mm"] == pytest.approx(4000, rel=0.1)
+    assert fit["focus_mm"] == pytest.approx(450, rel=0.03)
+    assert fit["sigma0_px"] == pytest.approx(0.6, abs=0.05)
+    assert fit_defocus(depth, 0.6 + np.random.default_rng(2).normal(0, 0.02, depth.size)) is None
