@@ -146,11 +146,12 @@ class _RigProblem:
     """Residuals and sparse Jacobian of the rig's reprojection errors.
 
     x = [cam_from_cam0 (rvec, tvec) of cameras 1..C-1, the free intrinsics of each camera in
-    turn (``free[c]``, a mask over model_parameters(camera)), cam0_from_board of each used frame].
-    Residuals are ordered camera by camera, observation by observation, (u, v).
+    turn (``free[c]``, a mask over model_parameters(camera)), with ``board`` the board's shape
+    (BoardShape.FIT_NAMES), cam0_from_board of each used frame]. Residuals are ordered camera by
+    camera, observation by observation, (u, v).
     """
 
-    def __init__(self, cameras, object_points, image_points, valid, free):
+    def __init__(self, cameras, object_points, image_points, valid, free, board=None):
         self.cameras, self.obj = cameras, object_points
         self.C, self.F = len(cameras), valid.shape[1]
         self.n_rig = 6 * (self.C - 1)
@@ -158,7 +159,11 @@ class _RigProblem:
         self.params0 = [np.concatenate([c.intrinsics, c.dist]) for c in cameras]
         sizes = [int(m.sum()) for m in free]
         self.intr_at = self.n_rig + np.concatenate([[0], np.cumsum(sizes)])
-        self.n_head = int(self.intr_at[-1])
+        # The board's shape, after the intrinsics: its grid and d points / d shape (N, 3, 3).
+        self.board = board
+        self.shape_jac = None if board is None else board.fit_jacobian(object_points[:, :2])
+        n_shape = 0 if board is None else len(board.FIT_NAMES)
+        self.n_head = int(self.intr_at[-1]) + n_shape
         self.valid = valid  # (C, F, N)
         self.obs = [image_points[c][valid[c]] for c in range(self.C)]
         rows, cols, self.offsets = [], [], [0]
@@ -166,6 +171,9 @@ class _RigProblem:
             f = np.nonzero(valid[c])[0]
             k = len(f)
             blocks = [self.n_head + 6 * f[:, None] + np.arange(6)]  # (K, 6) board columns
+            if board is not None:
+                blocks.insert(0, np.broadcast_to(self.intr_at[-1] + np.arange(n_shape),
+                                                 (k, n_shape)))
             if sizes[c]:
                 blocks.insert(0, np.broadcast_to(self.intr_at[c] + np.arange(sizes[c]),
                                                  (k, sizes[c])))
@@ -193,13 +201,21 @@ class _RigProblem:
             params.append(p)
         return rig, params, x[self.n_head:].reshape(-1, 6)
 
+    def board_shape(self, x) -> np.ndarray | None:
+        """The board's shape parameters in x (None without a board)."""
+        return None if self.board is None else x[int(self.intr_at[-1]):self.n_head]
+
     def evaluate(self, x, jacobian: bool):
         rig, params, boards = self.unpack(x)
-        Y = (np.einsum("fij,nj->fni", rodrigues_to_matrix(boards[:, :3]), self.obj)
-             + boards[:, None, 3:])  # board points in camera 0's frame (F, N, 3)
+        obj = self.obj if self.board is None else self.board.with_fit(self.board_shape(x)).points(
+            self.obj)
+        R_b = rodrigues_to_matrix(boards[:, :3])
+        Y = np.einsum("fij,nj->fni", R_b, obj) + boards[:, None, 3:]  # camera 0's frame
         if jacobian:  # d Y / d (rvec, tvec) of cam0_from_board, (F, N, 3, 6)
-            dY = np.concatenate([np.stack([rotate_jacobian(b[:3], self.obj) for b in boards]),
+            dY = np.concatenate([np.stack([rotate_jacobian(b[:3], obj) for b in boards]),
                                  np.broadcast_to(np.eye(3), Y.shape + (3,))], axis=-1)
+            if self.board is not None:  # d Y / d shape (F, N, 3, 3)
+                dS = np.einsum("fij,njk->fnik", R_b, self.shape_jac)
         res, data = [], []
         for c in range(self.C):
             uv, J = project_with_jacobians(Y[self.valid[c]], params[c][:5], params[c][5:],
@@ -208,6 +224,8 @@ class _RigProblem:
             res.append((uv - self.obs[c]).ravel())
             if jacobian:
                 blocks = [J["point"] @ dY[self.valid[c]]]
+                if self.board is not None:
+                    blocks.insert(0, J["point"] @ dS[self.valid[c]])
                 if self.free[c].any():
                     blocks.insert(0, np.concatenate([J["intrinsics"], J["dist"]],
                                                     -1)[..., self.free[c]])
@@ -350,6 +368,7 @@ def calibrate_rig(
     refine_intrinsics: Sequence[Sequence[str] | None] | None = None,
     loss: str = "linear",
     loss_scale_px: float = 1.0,
+    board=None,
 ) -> RigCalibration:
     """Calibrate the relative poses of a rig; see the module notes.
 
@@ -360,7 +379,9 @@ def calibrate_rig(
     MIN_POINTS_PER_VIEW points. ``tolerance`` is least_squares' ftol, xtol and gtol.
     refine_intrinsics: per camera the names (of model_parameters(camera)) to adjust with the rig, or
     None to keep that camera's intrinsics; None for all: intrinsics fixed. ``loss`` and
-    ``loss_scale_px``: least_squares' robust loss and f_scale.
+    ``loss_scale_px``: least_squares' robust loss and f_scale. ``board``: a BoardShape whose
+    shape (warp and aspect error, its FIT_NAMES) joins the adjustment, starting at its own, with
+    ``object_points`` the nominal ones; the result's log gives the fitted ``board_shape``.
     """
     t0 = time.perf_counter()
     C = len(cameras)
@@ -393,9 +414,10 @@ def calibrate_rig(
     detected = np.all(np.isfinite(img), axis=-1)  # (C, F, N)
     F = img.shape[1]
     valid = detected[:, frames] & seen[:, frames, None]
-    problem = _RigProblem(cameras, obj, img[:, frames], valid, free)
+    problem = _RigProblem(cameras, obj, img[:, frames], valid, free, board)
     x0 = np.concatenate([np.hstack([matrix_to_rodrigues(R[1:]), t[1:]]).ravel(),
                          problem.initial_intrinsics(),
+                         [] if board is None else board.fit_params,
                          np.hstack([R0b, t0b]).ravel()])
     rms0, _ = problem.rms(x0)
     # One BLAS thread: LSMR's many small products stall when threaded (2.5x slower measured
@@ -425,7 +447,9 @@ def calibrate_rig(
              "refined_intrinsics": {n: [p for p, f in zip(ps, m) if f]
                                     for n, ps, m in zip(names, parameters, free) if m.any()},
              "covisibility": covisibility(seen),
-             "initialization": start.log})
+             "initialization": start.log,
+             **({} if board is None else {"board_shape": dict(zip(
+                 board.FIT_NAMES, problem.board_shape(sol.x).tolist()))})})
 
 
 # ----------------------------------------------------------------------------------------------

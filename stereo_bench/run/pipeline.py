@@ -74,15 +74,13 @@ def _by_region(true_pts: np.ndarray, err: np.ndarray, centre: np.ndarray) -> lis
     return rows
 
 
-def fitted_board(object_points: np.ndarray, trial: TrialPaths, method: str, cameras
-                 ) -> np.ndarray:
-    """The board's points (N, 3) as the method's calibrations saw it: shaped by the mean of the
-    warps and aspect errors they fitted (calibration.fit_board_warp), else the nominal ones."""
+def fitted_board(object_points: np.ndarray, trial: TrialPaths, method: str, cameras):
+    """The board's shape (core/board_shape.py) as the method's calibrations fitted it (the mean
+    of their warps and aspect errors; calibration.fit_board_warp), or None."""
     logs = [{k: v.tolist() for k, v in read_arrays(trial.views(method, cam.name),
                                                      "a calibration's views").items()}
             for cam in cameras]
-    shape = fitted_shape(object_points, logs)
-    return object_points if shape is None else shape.points(object_points)
+    return fitted_shape(object_points, logs)
 
 
 def rig_of(source, trial: TrialPaths, method: str, calibration: CalibrationConfig,
@@ -101,15 +99,18 @@ def rig_of(source, trial: TrialPaths, method: str, calibration: CalibrationConfi
         cams.append(est)
         rv.append(r)
         tv.append(t)
-    board = fitted_board(source.object_points, trial, method, chosen)
+    shape = fitted_board(source.object_points, trial, method, chosen)
     image_points, rvecs, tvecs, found, changes = agree(
-        board, np.stack([d.points for d in dets]), np.stack(rv), np.stack(tv),
+        source.object_points if shape is None else shape.points(source.object_points),
+        np.stack([d.points for d in dets]), np.stack(rv), np.stack(tv),
         np.stack([d.found for d in dets]), [c.name for c in chosen],
         identified=source.pattern.kind == "charuco")
     params = get_calibrator(method).model_parameters if calibration.refine_intrinsics else None
-    rig = calibrate_rig(cams, board, image_points, rvecs, tvecs,
+    # With the board's shape fitted by the cameras, the rig refines it from there, jointly.
+    rig = calibrate_rig(cams, source.object_points, image_points, rvecs, tvecs,
                         found, refine_intrinsics=[params] * len(cams) if params else None,
-                        loss=calibration.loss, loss_scale_px=calibration.loss_scale_px)
+                        loss=calibration.loss, loss_scale_px=calibration.loss_scale_px,
+                        board=shape)
     rig.log["orientation"] = changes
     return rig, image_points
 
