@@ -119,8 +119,11 @@ class Calibrator(Protocol):
 def fitted_shape(object_points: np.ndarray, logs) -> BoardShape | None:
     """The board's shape (its grid from ``object_points``) as calibrations fitted it: the mean
     of the warps and aspect errors in their ``logs``; None when none fitted it."""
-    fits = [[*log["board_warp_mm"], log.get("board_aspect_error_pct", 0.0)]
-            for log in logs if "board_warp_mm" in log]
-    if not fits:
+    logs = [log for log in logs if "board_warp_mm" in log]
+    if not logs:
         return None
-    return BoardShape.of_points(object_points).with_fit(np.mean(fits, axis=0))
+    fits = [[*log["board_warp_mm"], log.get("board_aspect_error_pct", 0.0)] for log in logs]
+    grid = logs[0].get("board_grid_mm")  # the grid the fit is about (a subset's, in a fold)
+    shape = (BoardShape.of_points(object_points) if grid is None else
+             BoardShape(centre_mm=tuple(grid[:2]), half_mm=tuple(grid[2:])))
+    return shape.with_fit(np.mean(fits, axis=0))

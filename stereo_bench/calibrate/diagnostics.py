@@ -46,6 +46,7 @@ the estimate and its board poses (CalibrationResult), and return JSON-ready dict
 
 from __future__ import annotations
 
+
 import math
 from typing import Sequence
 
@@ -68,11 +69,15 @@ MODIFIED_Z = 3.5  # Iglewicz & Hoaglin's recommended cut on the modified z-score
 _CALIBRATION_ERRORS = (ValueError, np.linalg.LinAlgError, RuntimeError, cv2.error)
 
 
-def view_residuals(camera: Camera, obs: Observations, rvecs, tvecs) -> list[np.ndarray]:
-    """Per view (N_i, 2) px: projected - detected, through the camera and the view's pose."""
+def view_residuals(camera: Camera, obs: Observations, rvecs, tvecs, board_points=None
+                   ) -> list[np.ndarray]:
+    """Per view (N_i, 2) px: projected - detected, through the camera and the view's pose, of
+    the board's points (``board_points`` per view, as a fit shaped the board; default the
+    nominal ones)."""
     rv, tv = check_poses(obs, rvecs, tvecs)
+    points = obs.object_points if board_points is None else board_points
     return [project_points(o, camera.intrinsics, camera.dist, r, t, camera.model) - p
-            for o, p, r, t in zip(obs.object_points, obs.image_points, rv, tv)]
+            for o, p, r, t in zip(points, obs.image_points, rv, tv)]
 
 
 def _rms(r: np.ndarray) -> float:
@@ -286,7 +291,7 @@ def _subset(obs: Observations, index) -> Observations:
                         [obs.view_ids[i] for i in index], obs.camera_name)
 
 
-def heldout(method: str, obs: Observations, k: int = 5, seed: int = 0) -> dict:
+def heldout(method: str, obs: Observations, k: int = 5, seed: int = 0, **options) -> dict:
     """k-fold cross-validated reprojection error of calibration ``method`` (registry name).
 
     Views are shuffled with ``seed`` and split into k folds; each fold is held out in turn, the
@@ -300,8 +305,10 @@ def heldout(method: str, obs: Observations, k: int = 5, seed: int = 0) -> dict:
     ``ratio`` (held-out over in-sample), ``train_rms_px`` (the folds' own fits), ``views``: a list
     of {view_id, fold, heldout_rms_px, in_sample_rms_px, error}, ``fold_errors`` (fold -> why its
     calibration failed), ``folds``, ``k_requested``, ``note``, ``method``, ``seed``.
+    ``options`` go to the calibrator (e.g. ``board_warp``); a fit that shaped the board sees
+    every view, the held-out ones too, on the board as it fitted it.
     """
-    calibrator = get_calibrator(method)
+    calibrator = get_calibrator(method, **options)
     n = obs.n_views
     if int(k) != k or k < 2:
         raise ValueError(f"k: expected an integer number of folds >= 2, got {k}")
@@ -319,7 +326,7 @@ def heldout(method: str, obs: Observations, k: int = 5, seed: int = 0) -> dict:
         fold_of[index] = f
 
     full = calibrator.calibrate(obs)
-    in_sample = view_residuals(full.camera, obs, full.rvecs, full.tvecs)
+    in_sample = view_residuals(full.camera, obs, full.rvecs, full.tvecs, full.board_points(obs))
     heldout_res: list = [None] * n
     errors: list = [None] * n
     fold_errors, train_res = {}, []
@@ -332,9 +339,12 @@ def heldout(method: str, obs: Observations, k: int = 5, seed: int = 0) -> dict:
             for i in test:
                 errors[i] = f"calibration of fold {f} failed"
             continue
-        train_res += view_residuals(fit.camera, _subset(obs, train), fit.rvecs, fit.tvecs)
+        trained = _subset(obs, train)
+        train_res += view_residuals(fit.camera, trained, fit.rvecs, fit.tvecs,
+                                    fit.board_points(trained))
+        shaped = fit.board_points(obs)
         for i in test:
-            o, p = obs.object_points[i], obs.image_points[i]
+            o, p = shaped[i], obs.image_points[i]
             try:
                 rvec, tvec = planar_pose(fit.camera, o, p)
             except _CALIBRATION_ERRORS as e:  # e.g. a held-out corner beyond the trained fold

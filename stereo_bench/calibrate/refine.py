@@ -122,6 +122,7 @@ class RefineResult:
     param_names: tuple[str, ...]
     stop_reason: str
     board: np.ndarray | None = None  # (w_x, w_y, aspect %) when the board's shape was fitted
+    board_grid: list | None = None   # the feature grid it is about: [centre x, y, half x, y] mm
 
     def log(self) -> dict:
         """The fields every refining method puts in CalibrationResult.log."""
@@ -135,7 +136,8 @@ class RefineResult:
                           if not np.isnan(s)},
             "rank": self.jacobian_rank_info,
             **({} if self.board is None else {"board_warp_mm": self.board[:2].tolist(),
-                                              "board_aspect_error_pct": float(self.board[2])}),
+                                              "board_aspect_error_pct": float(self.board[2]),
+                                              "board_grid_mm": self.board_grid}),
         }
 
 
@@ -337,10 +339,10 @@ def refine(model: ProjectionModel, params0, free, object_points, image_points, r
     cam_from_board. ``board``: the board's shape (warp and aspect error, BoardShape.FIT_NAMES)
     about its feature grid's centre and half-size, starting at ``board``'s own; fitted with
     ``fit_warp`` (the result's ``board`` and its ``param_std``), else held. Stops when a step
-    changes the cost by less than ``ftol`` relative or the parameters by less than ``xtol`` relative (in Marquardt's
-    scaling), when no damping gives a decrease, or the linear model predicts none by more than
-    ``ftol`` relative or than rounding resolves (the cost is at its floating-point floor), or
-    after ``max_iter`` Jacobians.
+    changes the cost by less than ``ftol`` relative or the parameters by less than ``xtol``
+    relative (in Marquardt's scaling), when no damping gives a decrease, or the linear model
+    predicts none by more than ``ftol`` relative or than rounding resolves (the cost is at its
+    floating-point floor), or after ``max_iter`` Jacobians.
     """
     warp = board is not None
     if warp:
@@ -432,4 +434,5 @@ def refine(model: ProjectionModel, params0, free, object_points, image_points, r
     n = len(model.param_names)
     return RefineResult(x[:n], rv, tv, cost0, cost, iterations,
                         float(np.sqrt(2.0 * cost / n_points)), r, std, info, param_names, reason,
-                        x[n:] if warp else None)
+                        x[n:] if warp else None,
+                        [*board.centre_mm, *board.half_mm] if warp else None)

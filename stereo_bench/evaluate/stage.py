@@ -149,7 +149,8 @@ def save_calibration(result: CalibrationResult, obs: Observations, trial: TrialP
     result.camera.save_json(trial.calibration(method, name))
     opencv_yaml.write_camera(result.camera, trial.calibration_yaml(method, name))
     # The board's shape it fitted, which the rig stage gives its board (pipeline.fitted_board).
-    shape = {k: np.asarray(result.log[k]) for k in ("board_warp_mm", "board_aspect_error_pct")
+    shape = {k: np.asarray(result.log[k]) for k in ("board_warp_mm", "board_aspect_error_pct",
+                                                    "board_grid_mm")
              if k in result.log}
     write_npz(trial.views(method, name), rvecs=result.rvecs, tvecs=result.tvecs,
               view_ids=np.array(obs.view_ids), **shape)

@@ -38,7 +38,7 @@ from ..calibrate.lens_models import core_lens
 from ..config.schema import CalibrationConfig
 from ..detect.boards import measure_disc_diameter
 from ..calibrate.diagnostics import diagnose, heldout, view_geometry
-from ..evaluate.stage import (Estimate, calibrate_cameras, clear_calibrations, intrinsics_frames,
+from ..evaluate.stage import (Estimate, warp_option, calibrate_cameras, clear_calibrations, intrinsics_frames,
                               load_or_detect, observations)
 from ..scene.image_folders import ImageFolders
 from ..evaluate.metrics import projection_difference
@@ -57,10 +57,11 @@ DEFAULT_FOLDS = 5
 
 
 def _estimate_report(method: str, est: Estimate, folds: int, seed: int,
-                     given: str | None = None) -> dict:
+                     given: str | None = None, options: dict | None = None) -> dict:
     """The truth-free checks of one camera's estimate by one method (module notes). ``given``:
     where the camera's intrinsics came from when they were not estimated here (then only its
-    poses were fitted: no intrinsics to hold out, no covariance of them)."""
+    poses were fitted: no intrinsics to hold out, no covariance of them). ``options``: the
+    calibrator's, for the held-out folds (e.g. the board's shape fitted)."""
     result, obs = est.result, est.obs
     params = () if given else get_calibrator(method).model_parameters
     report = {"diagnostics": diagnose(result.camera, obs, result.rvecs, result.tvecs, params,
@@ -69,7 +70,7 @@ def _estimate_report(method: str, est: Estimate, folds: int, seed: int,
         why = f"intrinsics given ({given}), not estimated from these images"
         return {**report, "heldout": {"error": why}, "uncertainty": {"error": why}}
     try:
-        report["heldout"] = heldout(method, obs, k=folds, seed=seed)
+        report["heldout"] = heldout(method, obs, k=folds, seed=seed, **(options or {}))
     except ValueError as e:
         report["heldout"] = {"error": str(e)}
     if params is None:
@@ -495,7 +496,7 @@ def calibrate_capture(source: ImageFolders, methods: list[str], out, calibration
             if (m, cam.name) in estimates:
                 entries[m][cam.name].update(_estimate_report(
                     m, estimates[m, cam.name], folds, seed,
-                    given_from if cam.name in given else None))
+                    given_from if cam.name in given else None, warp_option(m, calibration)))
     results = {
         "kind": "capture",
         "pattern": {"kind": source.pattern.kind, **{
