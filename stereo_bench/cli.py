@@ -301,10 +301,11 @@ def cmd_export(args) -> int:
 def cmd_twin(args) -> int:
     from .core.files import write_text
     from .report.markdown import twin_markdown
-    from .run.twin import run_twin
+    from .run.twin import read_capture, run_twin
 
     capture = Path(args.capture)
     out = Path(args.out or capture / "twin")
+    read_capture(capture, args.method, args.seeds)  # a wrong capture or option creates nothing
     with locked(out):
         results = run_twin(capture, args.method, args.seeds, out,
                            progress=lambda text: console.print(text, markup=False,

@@ -321,15 +321,30 @@ def _real_figures(results: dict, method: str, camera: str) -> dict:
             "projection_sigma_px": proj.get("worst_px") if isinstance(proj, dict) else None}
 
 
+def read_capture(capture: Path, method: str, seeds: int) -> dict:
+    """The capture's results.json, checked before anything is written: a ValueError or
+    FileNotFoundError naming the file or the option otherwise."""
+    if not 1 <= seeds <= MAX_SEEDS:
+        raise ValueError(f"--seeds: expected 1..{MAX_SEEDS}, got {seeds}")
+    real = _load(Path(capture) / "results.json", "results.json")
+    missing = [k for k in ("pattern", "methods", "cameras", "calibration", "detection")
+               if not isinstance(real, dict) or k not in real]
+    if not isinstance(real, dict) or real.get("kind") != "capture" or missing:
+        raise ValueError(f"{capture}/results.json: not a calibrate-images output's (expected "
+                         f"kind: capture with {', '.join(missing) or 'its fields'})")
+    if method not in real["methods"]:
+        raise ValueError(f"--method {method}: not one of the capture's methods "
+                         f"({', '.join(real['methods'])})")
+    return real
+
+
 def run_twin(capture: Path, method: str, seeds: int, out: Path, progress=print) -> dict:
     """The twin of ``capture`` (module notes), written under ``out``; returns results.json's
     dict."""
     from ..core.files import strict, write_json
 
-    if not 1 <= seeds <= MAX_SEEDS:
-        raise ValueError(f"--seeds: expected 1..{MAX_SEEDS}, got {seeds}")
     capture = Path(capture)
-    real = _load(capture / "results.json", "results.json")
+    real = read_capture(capture, method, seeds)
     pattern_spec, pattern = pattern_of(real)
     cameras, views = capture_estimate(capture, method)
     poses = board_poses(cameras, views)

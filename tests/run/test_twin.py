@@ -113,3 +113,13 @@ def test_the_defocus_fit_finds_the_thin_lens_from_edge_widths():
     assert fit["focus_mm"] == pytest.approx(450, rel=0.03)
     assert fit["sigma0_px"] == pytest.approx(0.6, abs=0.05)
     assert fit_defocus(depth, 0.6 + np.random.default_rng(2).normal(0, 0.02, depth.size)) is None
+
+
+def test_what_is_not_a_capture_is_named(tmp_path, capsys):
+    assert main(["twin", str(tmp_path / "nowhere")]) == 2
+    assert "no results.json; expected a calibrate-images output folder" in capsys.readouterr().err
+    (tmp_path / "results.json").write_text(json.dumps({"kind": "run", "pattern": {}}))
+    assert main(["twin", str(tmp_path)]) == 2
+    assert "not a calibrate-images output's" in capsys.readouterr().err
+    assert main(["twin", str(tmp_path), "--seeds", "0"]) == 2
+    assert not (tmp_path / "twin").exists() or not any((tmp_path / "twin").iterdir())
