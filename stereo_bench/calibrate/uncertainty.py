@@ -146,9 +146,8 @@ def _check_distance(distance_mm) -> float:
 def _points_at(camera: Camera, uv: np.ndarray, distance_mm: float) -> np.ndarray:
     """Camera-frame points (M, 3) at ``distance_mm`` along the estimate's rays of pixels (M, 2)."""
     distance_mm = _check_distance(distance_mm)
-    xy = camera.unproject(uv)
-    rays = np.column_stack([xy, np.ones(len(xy))])
-    return rays * (distance_mm / np.linalg.norm(rays, axis=1, keepdims=True))
+    # Unit rays: a wide lens's past 90 degrees too (behind the camera's plane).
+    return camera.unproject_rays(uv) * distance_mm
 
 
 def reprojected(camera: Camera, rvecs, tvecs, uv, distance_mm: float, perturbed: Camera,
