@@ -41,6 +41,6 @@ def test_a_real_fisheye_capture_calibrates_with_every_wide_model(tmp_path):
     # measured 0.071 px at the centre, 1.5 px at the worst of the image circle.
     sigma = fits["zhang-fisheye"]["uncertainty"]["projection"]
     assert sigma["centre_px"] < 0.2 and sigma["worst_px"] < 5
-        agree = results["agreement"]["theta"]
+    agree = results["agreement"]["theta"]
     pair = next(r for r in agree if sorted(r["methods"]) == ["opencv-omnidir", "zhang-omnidir"])
     assert pair["mean_px"] < 1.0
