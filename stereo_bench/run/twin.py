@@ -37,13 +37,13 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy import stats
 
 from ..calibrate.base import fitted_shape
 from ..config.schema import OpticsConfig
 from ..core.camera import Camera
 from ..core.patterns import Checkerboard, pattern_from_config
 from ..core.poses import compose, invert, matrix_to_rodrigues, rodrigues_to_matrix
+from .sweep_stats import t_interval
 from ..render.imaging_fit import ImagingFit, fit_imaging, jpeg_quality, view_samples
 
 RPE_TOLERANCE = 0.2   # a twin whose RPE is more than 20 % off the real one does not match
@@ -193,13 +193,10 @@ def twin_rig(name: str, cameras: list[Camera], poses: dict, pattern: dict, env: 
 
 
 def interval(values) -> dict:
-    """mean, the 95 % Student-t interval's half width and n over the finite values."""
-    v = np.array([x for x in values if x is not None and np.isfinite(x)], dtype=np.float64)
-    if v.size == 0:
-        return {"mean": math.nan, "ci95": math.nan, "n": 0}
-    half = float(stats.t.ppf(0.975, v.size - 1) * v.std(ddof=1) / math.sqrt(v.size)) \
-        if v.size > 1 else math.nan
-    return {"mean": float(v.mean()), "ci95": half, "n": int(v.size)}
+    """mean, the 95 % Student-t interval's half width (sweep_stats.t_interval) and n over the
+    finite values."""
+    t = t_interval([np.nan if v is None else v for v in values])
+    return {"mean": t["mean"], "ci95": float(t["ci_high"] - t["ci_low"]) / 2, "n": t["n"]}
 
 
 def pattern_of(results: dict):
