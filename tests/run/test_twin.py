@@ -80,6 +80,7 @@ def test_the_twin_of_a_rendered_capture_finds_its_imaging_and_its_errors(tmp_pat
                                          rel=0.15)
 
 
+@pytest.mark.slow
 def test_the_twin_of_the_real_opencv_pair_says_it_does_not_match(tmp_path, opencv_pair):
     """OpenCV's sample pair: its residuals carry a structure (neighbour correlation ~0.3) and
     an RPE four times what its measured noise and blur give; the twin says so instead of
