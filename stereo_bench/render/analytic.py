@@ -170,10 +170,12 @@ class PixelRays:
         nodes_v = np.minimum(np.arange(0, H - 1 + _CELL, _CELL), H - 1)
         nodes = np.stack(np.meshgrid(nodes_u, nodes_v), -1).astype(float)
         if wide:
-            self.node_unit = np.where((ok := camera.rays(nodes))[1][..., None], ok[0], 0.0)
-            self.node_xy = _normalized(self.node_unit, ok[1])[0]
+            node_rays, self._node_has = camera.rays(nodes)
+            self.node_unit = np.where(self._node_has[..., None], node_rays, 0.0)
+            self.node_xy = _normalized(self.node_unit, self._node_has)[0]
         else:
             self.node_xy = camera.unproject(nodes)
+        self._has = has_ray  # which pixels have a ray: a turned view keeps them
         self._straight = RayView(self, None, self.xy, self.node_xy)
         self._turned: RayView | None = None
 
@@ -188,10 +190,8 @@ class PixelRays:
         Q = view_toward(d.mean(0))
         if self._turned is None or not np.array_equal(self._turned.Q, Q):
             with np.errstate(invalid="ignore"):
-                has = np.any(self.unit != 0, axis=-1)
-                xy = _normalized(self.unit @ Q.T.astype(np.float32), has)[0]
-                node_has = np.any(self.node_unit != 0, axis=-1)
-                node_xy = _normalized(self.node_unit @ Q.T, node_has)[0]
+                xy = _normalized(self.unit @ Q.T.astype(np.float32), self._has)[0]
+                node_xy = _normalized(self.node_unit @ Q.T, self._node_has)[0]
             self._turned = RayView(self, Q, xy.astype(np.float32), node_xy)
         return self._turned
 
