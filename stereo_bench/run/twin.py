@@ -31,7 +31,6 @@ board's scale; a twin whose RPE is too low for these reasons says so.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -41,6 +40,7 @@ import numpy as np
 from ..calibrate.base import fitted_shape
 from ..config.schema import OpticsConfig
 from ..core.camera import Camera
+from ..core.files import read_arrays, read_json
 from ..core.patterns import Checkerboard, pattern_from_config
 from ..core.poses import compose, invert, matrix_to_rodrigues, rodrigues_to_matrix
 from .sweep_stats import t_interval
@@ -52,22 +52,16 @@ MAX_SEEDS = 100
 
 
 def _load(path: Path, what: str) -> dict:
-    try:
-        return json.loads(path.read_text())
-    except FileNotFoundError:
+    if not path.is_file():
         raise FileNotFoundError(f"{path}: no {what}; expected a calibrate-images output "
-                                f"folder") from None
-    except (OSError, ValueError) as e:
-        raise ValueError(f"{path}: unreadable {what} ({e})") from None
+                                f"folder")
+    return read_json(path, what)
 
 
-def capture_estimate(capture: Path, method: str) -> tuple[list[Camera], dict]:
+def capture_estimate(capture: Path, method: str, results: dict) -> tuple[list[Camera], dict]:
     """(the method's cameras, cam_from_world with world = the reference camera's frame;
-    per camera the (rvecs, tvecs, frame ids) of its views) from a calibrate-images output."""
-    results = _load(capture / "results.json", "results.json")
-    if method not in results.get("methods", []):
-        raise ValueError(f"--method {method}: not one of the capture's methods "
-                         f"({', '.join(results.get('methods', []))})")
+    per camera the (rvecs, tvecs, frame ids) of its views) from a calibrate-images output
+    whose results.json is ``results`` (read_capture)."""
     rig_file = capture / "rig" / f"{method}.json"
     if rig_file.exists():
         cameras = [Camera.from_dict(c, str(rig_file)) for c in _load(rig_file, "rig")["cameras"]]
@@ -82,8 +76,9 @@ def capture_estimate(capture: Path, method: str) -> tuple[list[Camera], dict]:
         raise ValueError(f"{capture}: {method} calibrated no camera of this capture")
     views = {}
     for cam in cameras:
-        with np.load(capture / "calibrations" / method / f"{cam.name}_views.npz") as v:
-            views[cam.name] = (v["rvecs"], v["tvecs"], v["view_ids"])
+        v = read_arrays(capture / "calibrations" / method / f"{cam.name}_views.npz",
+                        "a calibration's views")
+        views[cam.name] = (v["rvecs"], v["tvecs"], v["view_ids"])
     return cameras, views
 
 
@@ -287,7 +282,7 @@ def _scores(capture_results: dict, capture_out: Path, ds) -> dict:
                                       "parameter_errors": parameter_errors(est, true0)}
         rig_file = capture_out / "rig" / f"{m}.json"
         if len(truth) > 1 and rig_file.exists():
-            est = [Camera.from_dict(c) for c in json.loads(rig_file.read_text())["cameras"]]
+            est = [Camera.from_dict(c) for c in read_json(rig_file, "rig")["cameras"]]
             if [c.name for c in est] == list(truth):
                 # The twin's detections triangulated through the method's rig, scored as a run
                 # scores its rigs: RMSE_cal against the physical board, the cameras' errors.
@@ -343,7 +338,7 @@ def run_twin(capture: Path, method: str, seeds: int, out: Path, progress=print) 
     capture = Path(capture)
     real = read_capture(capture, method, seeds)
     pattern_spec, pattern = pattern_of(real)
-    cameras, views = capture_estimate(capture, method)
+    cameras, views = capture_estimate(capture, method, real)
     poses = board_poses(cameras, views)
     if not poses:
         raise ValueError(f"{capture}: {method} has no board pose of any frame")
