@@ -258,6 +258,14 @@ class TrialPaths:
     def rig(self, method: str) -> Path:
         return self.rigs / f"{method}.json"
 
+    def tool(self, name: str) -> Path:
+        """The files another calibration tool wrote (``stereo-bench compare-tools``)."""
+        return self.root / "tools" / name
+
+    def tool_score(self, name: str) -> Path:
+        """That tool's calibration scored against the truth, and its uncertainty's check."""
+        return self.root / "tools" / f"{name}.json"
+
 
 @dataclass(frozen=True)
 class RunPaths:

@@ -573,3 +573,74 @@ def twin_markdown(results: dict) -> str:
         lines += [f"| {meth} | {iv(r['rmse_cal_mm'])} | {iv(r['rotation_deg'])} | "
                   f"{iv(r['centre_mm'])} | {iv(r['baseline_mm'])} |" for meth, r in rigs.items()]
     return "\n".join(lines) + "\n"
+
+
+def _interval(s: dict, digits: int = 3) -> str:
+    """mean [95 % interval] of a sweep_stats.t_interval summary; the mean alone for one seed."""
+    if not s or s.get("mean") is None:
+        return "–"
+    if s.get("ci_low") is None:
+        return _num(s["mean"], digits)
+    return f"{_num(s['mean'], digits)} [{_num(s['ci_low'], digits)}, {_num(s['ci_high'], digits)}]"
+
+
+def _share_cell(s: dict) -> str:
+    return (f"{100 * s['share']:.0f} % [{100 * s['ci_low']:.0f}, {100 * s['ci_high']:.0f}] "
+            f"of {s['n']}")
+
+
+def compare_markdown(report: dict) -> str:
+    """report.md of ``stereo-bench compare-tools`` (run/compare.py): every tool's figures with
+    95 % intervals over the seeds, its pose cost, and whether its uncertainty is honest."""
+    from ..run.compare import FIGURES
+
+    seeds = len(report["seeds"])
+    table, pose = report["table"], report.get("pose") or {}
+    rig_figs = [f for f in FIGURES if report["cameras"] > 1 or f[0].startswith(("proj", "time"))]
+    lines = [f"# Calibration tools against the truth: {report['rig']}", "",
+             f"{report['cameras']} camera(s), {report['pattern']} board, `{report['environment']}` "
+             f"imaging, {seeds} seed(s). Every tool calibrates the same detections of each seed's "
+             f"session as its users run it; its own file is read back and scored against the "
+             f"truth. Cells: mean [95 % Student-t interval over the seeds].", ""]
+    pose_cols = "costs" in pose
+    lines += _header("tool", *[f"{t} {u}" for _, t, u in rig_figs],
+                     *(["pose cost mm"] if pose_cols else []), "seeds")
+    for name, row in table.items():
+        if row["skipped"]:
+            continue
+        cells = [_interval(row["figures"][k], 4 if u == "deg" else 3) for k, _, u in rig_figs]
+        if pose_cols:
+            cells.append(_interval(pose["costs"].get(name, {})))
+        lines.append(f"| {name} | " + " | ".join(cells) + f" | {row['seeds']} |")
+    if pose_cols:
+        lines += ["", f"Pose cost: pose-eval's paired MPJPE of the body triangulated through the "
+                      f"tool's cameras minus through the true ones, on the same keypoints "
+                      f"(floor, true cameras: {_interval(pose['floor'])} mm); {pose['about']}."]
+    elif pose.get("error"):
+        lines += ["", f"Pose cost not measured: {pose['error']}."]
+    cover = {n: r["coverage"] for n, r in table.items() if r["coverage"]}
+    if cover:
+        lines += ["", "## Is each tool's own uncertainty honest?", "",
+                  "The share of (seed, camera) values whose true error lies inside the tool's "
+                  "reported 1-sigma, with its 95 % Wilson interval; an honest uncertainty holds "
+                  "68 %. Projection: the true error of the mean-frames projection at 9 pixels "
+                  f"inside the 68 % ellipse of the reported covariance (e' S^-1 e <= "
+                  f"{report['chi2_2d_68']:.2f}); median of |e| / worst-direction sigma beside "
+                  "it.", ""]
+        lines += _header("tool", "parameters (all)", "projection", "|e| / sigma median",
+                         "worst parameter")
+        for name, c in cover.items():
+            params = c.get("parameters", {})
+            worst = min(params.items(), key=lambda kv: kv[1]["share"], default=None)
+            lines.append(
+                f"| {name} | {_share_cell(c['parameters_all']) if params else '–'} | "
+                f"{_share_cell(c['projection']) if 'projection' in c else '–'} | "
+                f"{_num(c.get('projection_error_over_sigma_median'), 2)} | "
+                + (f"{worst[0]}: {100 * worst[1]['share']:.0f} %" if worst else "–") + " |")
+    lines += ["", "## The tools", ""]
+    for name, row in table.items():
+        state = (f"not run here: {row['skipped']}" if row["skipped"] else
+                 f"failed on {len(row['failed'])} seed(s), e.g. {row['failed'][0]}"
+                 if row["failed"] else "ran on every seed")
+        lines.append(f"- **{name}**: {report['about'][name]}; {state}.")
+    return "\n".join(lines + [""])

@@ -536,3 +536,41 @@ def plot_sweep_curve(curve: dict, path: Path) -> Path:
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
+
+
+def plot_compare(report: dict, path: Path) -> Path:
+    """compare-tools.png: per figure, each tool's mean with its 95 % interval over the seeds
+    (horizontal bars; log scale where the tools differ by decades)."""
+    from ..run.compare import FIGURES
+
+    table = {n: r for n, r in report["table"].items() if not r["skipped"] and r["seeds"]}
+    panels = [(k, f"{t} ({u})") for k, t, u in FIGURES
+              if k != "time_s" and (report["cameras"] > 1 or k.startswith("proj"))]
+    costs = (report.get("pose") or {}).get("costs")
+    rows = {k: {n: r["figures"][k] for n, r in table.items()} for k, _ in panels}
+    if costs:
+        panels.append(("pose", "pose cost (mm MPJPE)"))
+        rows["pose"] = {n: costs.get(n, {}) for n in table}
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.3 * len(panels), 0.45 * len(table) + 1.6),
+                             squeeze=False)
+    names = list(table)
+    for ax, (key, title) in zip(axes[0], panels):
+        mean = np.array([np.nan if rows[key][n].get("mean") is None else rows[key][n]["mean"]
+                         for n in names], float)
+        lo = np.array([rows[key][n].get("ci_low") for n in names], dtype=float)
+        hi = np.array([rows[key][n].get("ci_high") for n in names], dtype=float)
+        err = np.where(np.isfinite(lo), [mean - lo, hi - mean], 0.0)
+        ax.barh(range(len(names)), mean, xerr=err, capsize=3, color="tab:blue", alpha=0.8)
+        ax.set_yticks(range(len(names)), names if ax is axes[0][0] else [""] * len(names),
+                      fontsize=8)
+        ax.invert_yaxis()
+        positive = mean[np.isfinite(mean) & (mean > 0)]
+        if len(positive) > 1 and positive.max() / positive.min() >= 10:
+            ax.set_xscale("log")
+        ax.set_title(title, fontsize=9)
+        ax.tick_params(axis="x", labelsize=7)
+    fig.suptitle(f"{report['rig']}: {len(report['seeds'])} seed(s), 95 % intervals", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path

@@ -135,31 +135,44 @@ def score_calibration(ds: Dataset, path, fmt: str | None, out) -> dict:
     names = [c.name for c in ds.cameras]
     cams, how = as_rig_of(estimate, names, str(path))
     report = {"kind": "imported", "calibration": str(path), "format": fmt or io.guess_format(path),
-              "dataset": str(ds.root), "matched": how, "cameras": {}}
+              "dataset": str(ds.root), "matched": how}
+    notes = Notes()
+    image_points = None
+    if len(cams) > 1:
+        dets, _, _ = load_or_detect(ds, TrialPaths(Path(out)), notes=notes)
+        image_points = np.stack([d.points for d in dets])
+    report.update(score_cameras(ds, cams, image_points, str(path)))
+    if len(cams) > 1:
+        report["notes"] = notes.items
+    return report
+
+
+def score_cameras(ds: Dataset, cams: list[Camera], image_points: np.ndarray | None,
+                  where: str) -> dict:
+    """A rig's cameras (cam_from_cam0, in the dataset's order) against the dataset's truth:
+    per camera the projection difference, parameter errors and validity; for 2+ cameras, RMSE_cal
+    through ``image_points`` (C, F, N, 2), the rig's errors and its board geometry. ``where``
+    names the calibration in messages."""
+    report = {"cameras": {}}
     for est, truth in zip(cams, ds.cameras):
         if est.size != truth.size:
-            raise ValueError(f"{path}: camera {truth.name!r} is {est.width}x{est.height} px, the "
-                             f"dataset's {truth.width}x{truth.height}")
+            raise ValueError(f"{where}: camera {truth.name!r} is {est.width}x{est.height} px, "
+                             f"the dataset's {truth.width}x{truth.height}")
         truth0 = truth.with_params(rvec=np.zeros(3), tvec=np.zeros(3))
         report["cameras"][truth.name] = {
             "projection_difference": projection_difference(est, truth0),
             "parameter_errors": parameter_errors(est, truth0),
             "validity": validity(est, truth0)}
     if len(cams) > 1:
-        notes = Notes()
-        dets, _, _ = load_or_detect(ds, TrialPaths(Path(out)), notes=notes)
-        image_points = np.stack([d.points for d in dets])
         points, dropped = triangulated_board(cams, image_points)
         if not np.isfinite(points).all(-1).any():
             # A rig file that reads as cameras but whose rays never meet in front of them.
             report["rig"] = {"error": "no board point of the dataset triangulates through this "
                                       "rig (its cameras' rays do not meet in front of them)",
                              "detections_outside_model": dropped}
-            report["notes"] = notes.items
             return report
         rig = score_rig(cams, points, ds)
         rig["board_geometry"] = board_geometry(points, ds.object_points)
         rig["detections_outside_model"] = dropped
         report["rig"] = rig
-        report["notes"] = notes.items
     return report

@@ -267,7 +267,7 @@ def rig_fingerprint(metrics_fp: str, method: str, settings: dict | None = None) 
                        settings if settings is not None else rig_settings(CalibrationConfig()))
 
 
-def _dataset(cfg: RigConfig, trial: TrialPaths, dataset_dir: Path | None, progress,
+def dataset_of(cfg: RigConfig, trial: TrialPaths, dataset_dir: Path | None, progress,
              notes: Notes) -> Dataset:
     """The trial's dataset: an existing one (``dataset_dir``), or the trial's own, reused when
     it was rendered from this configuration and rendered again otherwise."""
@@ -297,7 +297,7 @@ def run_trial(cfg: RigConfig, out: Path, methods: list[str], progress=None,
     """
     trial = RunPaths(Path(out)).trial(cfg.seed)
     notes = Notes()
-    ds = _dataset(cfg, trial, dataset_dir, progress, notes)
+    ds = dataset_of(cfg, trial, dataset_dir, progress, notes)
     expected = metrics_fingerprint(detections_fingerprint(ds), methods, cfg.calibration)
     report = reusable(trial.metrics, expected, notes, "calibration")
     if report is None:
