@@ -118,8 +118,8 @@ def rig_of(source, trial: TrialPaths, method: str, calibration: CalibrationConfi
 def triangulated_board(cameras: list[Camera], image_points: np.ndarray
                        ) -> tuple[np.ndarray, dict[str, int]]:
     """The board's points triangulated in every frame through a rig's cameras (cam_from_cam0),
-    (F, N, 3) mm in the reference camera's frame (NaN where fewer than two cameras saw them), and per camera the
-    number of detections it could not use: those where its estimated distortion has no unique
+    (F, N, 3) mm in the reference camera's frame (NaN where fewer than two cameras saw them), and
+    per camera the number of detections it could not use: those where its estimated distortion has no unique
     ray (an overfitted model folds inside the image, TRAPS.md); they are masked, not fatal."""
     pts = image_points.copy()
     dropped = {}

@@ -12,7 +12,6 @@ import time
 from pathlib import Path
 
 import cv2
-import numpy as np
 
 from ..calibrate.opencv_ref import OpenCVCalibrator
 from ..multiview.bundle import rig_start

@@ -1,15 +1,13 @@
 """The suite's own calibration, as a reference row beside the other tools: Zhang's method per
-camera (k1, k2, p1, p2, k3 as OpenCV's default model, and skew), then the suite's rig bundle adjustment
-(multiview.bundle.calibrate_rig, intrinsics kept). Its uncertainty: the Gauss-Newton parameter
-covariance of each camera's fit and mrcal's mean-frames projection covariance
+camera (k1, k2, p1, p2, k3 as OpenCV's default model, and skew), then the suite's rig bundle
+adjustment (multiview.bundle.calibrate_rig, intrinsics kept). Its uncertainty: the Gauss-Newton
+parameter covariance of each camera's fit and mrcal's mean-frames projection covariance
 (calibrate/uncertainty.py), over the same pixels as every tool's."""
 
 from __future__ import annotations
 
 import time
 from pathlib import Path
-
-import numpy as np
 
 from ..calibrate import get_calibrator
 from ..calibrate.uncertainty import median_board_distance, parameter_covariance, \
@@ -19,7 +17,8 @@ from ..multiview.bundle import calibrate_rig
 from . import Session, ToolResult, board_poses, observations, probe_pixels, read_back
 
 NAME = ("synthcal",)
-ABOUT = "the suite's Zhang (k1, k2, p1, p2, k3, skew) per camera, then its rig bundle adjustment (a reference)"
+ABOUT = ("the suite's Zhang (k1, k2, p1, p2, k3, skew) per camera, then its rig bundle "
+         "adjustment (a reference)")
 METHOD = "zhang-brown"
 
 
