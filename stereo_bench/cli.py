@@ -330,7 +330,9 @@ def cmd_compare_tools(args) -> int:
 
     cfg = load_rig(args.rig)
     if args.environment:  # any imaging preset on the rig's cameras and session
-        cfg = parse_rig({**cfg.model_dump(mode="json", exclude_unset=True),
+        from .config.yaml_reader import load_yaml
+
+        cfg = parse_rig({**load_yaml(args.rig, "rig file"),
                          "environment": {"kind": args.environment}}, args.rig)
     cfg = _renderable(cfg)
     names = parse_tools(args.tools)

@@ -632,9 +632,11 @@ def compare_markdown(report: dict) -> str:
         for name, c in cover.items():
             params = c.get("parameters", {})
             worst = min(params.items(), key=lambda kv: kv[1]["share"], default=None)
+            none = c.get("not_computed", [])
             lines.append(
                 f"| {name} | {_share_cell(c['parameters_all']) if params else '–'} | "
-                f"{_share_cell(c['projection']) if 'projection' in c else '–'} | "
+                f"{_share_cell(c['projection']) if 'projection' in c else '–'}"
+                + (f"; not computed for {len(none)}: {none[0]}" if none else "") + " | "
                 f"{_num(c.get('projection_error_over_sigma_median'), 2)} | "
                 + (f"{worst[0]}: {100 * worst[1]['share']:.0f} %" if worst else "–") + " |")
     lines += ["", "## The tools", ""]

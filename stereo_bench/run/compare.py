@@ -106,7 +106,7 @@ def check_uncertainty(ds: Dataset, result: tools.ToolResult) -> dict:
         if not reported or truth.name not in by_name:
             continue
         est = by_name[truth.name]
-        entry = {}
+        entry = {"error": reported["error"]} if "error" in reported else {}
         if "parameters" in reported:
             err = parameter_errors(est, truth.with_params(rvec=np.zeros(3), tvec=np.zeros(3)))
             entry["parameter_z"] = {k: err[k] / s for k, s in reported["parameters"].items()
@@ -233,8 +233,11 @@ def coverage(seeds: list[dict], name: str) -> dict:
     params: dict[str, list[bool]] = {}
     proj: list[bool] = []
     ratio: list[float] = []
+    failed: list[str] = []
     for s in seeds:
-        for cam in s["tools"].get(name, {}).get("uncertainty", {}).values():
+        for cam_name, cam in s["tools"].get(name, {}).get("uncertainty", {}).items():
+            if "error" in cam:
+                failed.append(f"seed {s['seed']}, {cam_name}: {cam['error']}")
             for k, z in cam.get("parameter_z", {}).items():
                 params.setdefault(k, []).append(abs(z) <= 1.0)
             if "projection" in cam:
@@ -249,6 +252,8 @@ def coverage(seeds: list[dict], name: str) -> dict:
     if proj:
         out["projection"] = _share(proj)
         out["projection_error_over_sigma_median"] = float(np.median(ratio))
+    if failed:
+        out["not_computed"] = failed
     return out
 
 

@@ -24,7 +24,8 @@ mrcal              mrcal-calibrate-cameras, LENSMODEL_OPENCV8 (in mrcal's own en
 The tools that report an uncertainty return it in ``ToolResult.uncertainty``: per camera, the
 1-sigma of each intrinsic parameter it reports (``parameters``), and/or its projection
 covariance at chosen pixels (``projection``: pixels (P, 2), distance mm, covariances (P, 2, 2)),
-which compare-tools checks against the true error.
+which compare-tools checks against the true error; or ``error``: why the tool could not
+compute it this time.
 """
 
 from __future__ import annotations
