@@ -21,8 +21,9 @@ $(BIN)/stereo-bench: pyproject.toml
 	# (opencv-python) and because its video stack (av) is not used.
 	$(BIN)/python -m pip install --quiet rtoml platformdirs
 	$(BIN)/python -m pip install --quiet --no-deps caliscope==0.11.8
-	# mrcal, to read .cameramodel files back in the tests, has no wheel for Python < 3.12: a
-	# small environment of its own when a python3.12 or newer is found (else those tests skip).
+	# mrcal, to read .cameramodel files back in the tests and to run mrcal-calibrate-cameras in
+	# compare-tools, has no wheel for Python < 3.12: a small environment of its own when a
+	# python3.12 or newer is found (else those tests and that tool skip, saying why).
 	-$(MAKE) --no-print-directory mrcal-env
 	touch $@
 
@@ -42,7 +43,8 @@ blender: venv
 mrcal-env:
 	@if [ -z "$(MRCAL_PYTHON)" ]; then echo "no python3.12+ found: mrcal tests will skip"; exit 0; fi; \
 	$(MRCAL_PYTHON) -m venv $(VENV)/mrcal && \
-	$(VENV)/mrcal/bin/python -m pip install --quiet numpy scipy numpysane gnuplotlib pyyaml && \
+	$(VENV)/mrcal/bin/python -m pip install --quiet numpy scipy numpysane gnuplotlib pyyaml \
+		opencv-python-headless && \
 	$(VENV)/mrcal/bin/python -m pip install --quiet --no-deps mrcal==2.5.2.post1
 
 venv: $(BIN)/stereo-bench

@@ -128,7 +128,9 @@ class BoardShape:
         a = [x * R[0, k] + y * R[1, k] + R[2, k] for k in range(3)]
         b = R.T @ t
         (cx, cy), (sx, sy) = self.centre_mm, self.scale
-        with np.errstate(divide="ignore", invalid="ignore"):
+        # Rays parallel to the board (a[2] = 0) and a bowed board's iteration on rays that
+        # never meet it give inf/NaN depths, which the callers treat as "not on the board".
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             inv_az = 1.0 / a[2]
             z = 0.0
             for _ in range(_INTERSECTION_ITERATIONS if self.warp_mm != (0.0, 0.0) else 1):

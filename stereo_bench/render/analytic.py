@@ -598,6 +598,9 @@ class AnalyticRenderer:
             xy = view.xy[rows.start + 1:rows.stop + 1, cols.start + 1:cols.stop + 1]
             radius = 0.5 * optics.circle_of_confusion_px(self._plane_depth(xy, R, t),
                                                          self.camera.fx)
+            # A pixel of the box whose ray never meets the board's plane (a board seen nearly
+            # edge-on) has no depth: the board is not there, nothing to blur.
+            radius = np.where(np.isfinite(radius), radius, 0.0)
             image[box] = defocus(image[box], np.minimum(radius, reach).astype(np.float32))
         if optics.blur_px > 0 and strips:
             box = self._board_box(strips, int(math.ceil(4 * optics.blur_px)) + 1)

@@ -94,7 +94,8 @@ class Optics:
             return np.zeros_like(depth_mm)
         f, df = self.focal_length_mm, self.focus_distance_mm
         d = np.maximum(depth_mm, f * 1.001)
-        return fx * f * np.abs(d - df) / (self.f_number * d * df)
+        with np.errstate(invalid="ignore"):  # no depth (NaN, inf): no diameter (NaN)
+            return fx * f * np.abs(d - df) / (self.f_number * d * df)
 
 
 @dataclass(frozen=True)
