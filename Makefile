@@ -4,7 +4,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test venv clean mrcal-env bench-deps blender
+.PHONY: demo test venv clean mrcal-env blender
 
 $(BIN)/stereo-bench: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -12,13 +12,15 @@ $(BIN)/stereo-bench: pyproject.toml
 	# torch first and pinned: the CPU build; an unpinned torch would pull CUDA packages.
 	$(BIN)/python -m pip install --quiet torch==2.13.0
 	$(BIN)/python -m pip install --quiet -e ".[test]"
-	# aniposelib, to read anipose files back in the tests: without its dependencies, since it
-	# asks for opencv-contrib-python, which would replace the headless OpenCV in the same cv2.
-	$(BIN)/python -m pip install --quiet numba pandas tqdm toml
+	# aniposelib, to read anipose files back in the tests and to calibrate in compare-tools
+	# (its triangulation imports jax): without its dependencies, since it asks for
+	# opencv-contrib-python, which would replace the headless OpenCV in the same cv2.
+	$(BIN)/python -m pip install --quiet numba pandas tqdm toml "jax[cpu]==0.10.2"
 	$(BIN)/python -m pip install --quiet --no-deps aniposelib==0.8.0
-	# caliscope, to read camera_array.toml files back in the tests: its camera array needs only
-	# rtoml and platformdirs (and pandas, above); without its dependencies for the same reason
-	# (opencv-python) and because its video stack (av) is not used.
+	# caliscope, to read camera_array.toml files back in the tests and to calibrate in
+	# compare-tools: its camera array and calibration need only rtoml and platformdirs (and
+	# pandas, above); without its dependencies for the same reason (opencv-python) and because
+	# its video stack (av) and GUI are not used.
 	$(BIN)/python -m pip install --quiet rtoml platformdirs
 	$(BIN)/python -m pip install --quiet --no-deps caliscope==0.11.8
 	# mrcal, to read .cameramodel files back in the tests and to run mrcal-calibrate-cameras in
@@ -29,10 +31,6 @@ $(BIN)/stereo-bench: pyproject.toml
 
 MRCAL_PYTHON ?= $(firstword $(foreach v,3.12 3.13,$(shell ls $(HOME)/.pyenv/versions/$(v)*/bin/python$(v) /usr/local/bin/python$(v) /usr/bin/python$(v) 2>/dev/null)))
 
-# What benchmarks/ compare against beyond the test set: jax, which aniposelib's triangulation
-# imports (benchmarks/triangulation_speed.py says so and skips that peer without it).
-bench-deps: venv
-	$(BIN)/python -m pip install --quiet "jax[cpu]==0.10.2"
 
 # The Blender worker environment (bpy 5.0.1, mediapipe 0.10.21, numpy<2; about 2 GB): the
 # photoreal backend and the 2D pose detector run there (docs/photoreal.md). Without it their

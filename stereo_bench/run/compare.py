@@ -53,7 +53,7 @@ from ..io.rundir import Notes, RunPaths, TrialPaths, fingerprint
 from ..multiview.orientation import numbered_like
 from ..core.poses import rodrigues_to_matrix
 from ..scene.dataset import Dataset
-from .exchange import score_cameras
+from .exchange import rebased, score_cameras
 from .pipeline import dataset_of, rig_fingerprint
 from .sweep_stats import t_interval
 
@@ -70,7 +70,7 @@ def session_of(ds: Dataset, dets) -> tools.Session:
                            for c, p in enumerate(points)])
     return tools.Session([c.name for c in ds.cameras], [c.size for c in ds.cameras],
                          ds.object_points, points, np.stack([d.found for d in dets]),
-                         ds.pattern.kind)
+                         ds.pattern)
 
 
 def _true_cam_from_board(ds: Dataset, c: int, frames) -> tuple[np.ndarray, np.ndarray]:
@@ -132,6 +132,8 @@ def _run_tool(name: str, session: tools.Session, ds: Dataset, trial: TrialPaths)
     t0 = time.perf_counter()
     try:
         result = mod.calibrate(session, trial.tool(name), name)
+        if len(result.cameras) > 1:  # a tool's world (anipose's, caliscope's) as camera 0's
+            result.cameras = rebased(result.cameras)
         entry = {"tool": name, "file": str(result.path), "format": result.fmt,
                  "time_s": result.time_s, "log": result.log,
                  "cameras_estimated": [c.to_dict() for c in result.cameras]}

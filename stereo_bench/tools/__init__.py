@@ -18,6 +18,7 @@ opencv-stereo      cv2.calibrateCamera per camera, then cv2.stereoCalibrate (pai
 opencv-multiview   cv2.calibrateMultiview, intrinsics by its own calibrateCamera (OpenCV >= 5)
 pycolmap           OpenCV's cameras refined by pycolmap's bundle adjuster with its rig
 anipose            aniposelib's CameraGroup.calibrate_rows (init, then its bundle adjustment)
+caliscope          caliscope's intrinsics per camera, then its capture volume (scripting guide)
 mrcal              mrcal-calibrate-cameras, LENSMODEL_OPENCV8 (in mrcal's own environment)
 =================  ================================================================================
 
@@ -45,6 +46,7 @@ MODULES = {
     "opencv-multiview": "opencv",
     "pycolmap": "colmap",
     "anipose": "anipose",
+    "caliscope": "caliscope",
     "mrcal": "mrcal",
 }
 TOOLS = tuple(MODULES)
@@ -62,7 +64,8 @@ class Session:
     cameras is the tools' to see. object_points (N, 3) mm, the board's points in its frame (z = 0).
     image_points (C, F, N, 2) px, OpenCV's pixel convention (the centre of the top-left pixel at
     (0, 0)), NaN where a point was not detected. found (C, F): the camera found the board.
-    pattern: the board's kind (checkerboard, charuco, ...).
+    pattern: the board (core.patterns: its kind and geometry, e.g. a ChArUco board's
+    dictionary).
     """
 
     names: list[str]
@@ -70,7 +73,7 @@ class Session:
     object_points: np.ndarray
     image_points: np.ndarray
     found: np.ndarray
-    pattern: str
+    pattern: object
 
     def full_views(self) -> np.ndarray:
         """(C, F): the views where every point of the board was detected."""
@@ -91,7 +94,7 @@ class Session:
             expected = np.stack([xs[0] + i * spacing, ys[0] + j * spacing], axis=1)
             ok = np.allclose(obj[:, :2], expected, atol=1e-6) and np.allclose(obj[:, 2], 0)
         if not ok:
-            raise ToolError(f"the {self.pattern} board's points are not a square grid numbered "
+            raise ToolError(f"the {self.pattern.kind} board's points are not a square grid numbered "
                             f"row by row; this tool describes only such boards")
         return cols, rows, spacing
 
@@ -143,7 +146,7 @@ def observations(session: Session, c: int):
     from ..detect.dataset import CameraDetections
     from ..evaluate.stage import observations as stage_observations
 
-    det = CameraDetections(camera=session.names[c], pattern=session.pattern, method="given",
+    det = CameraDetections(camera=session.names[c], pattern=session.pattern.kind, method="given",
                            points=session.image_points[c], found=session.found[c],
                            ids=np.arange(len(session.object_points)))
     obs, _ = stage_observations(det, session.object_points,

@@ -25,7 +25,7 @@ def exact(tmp_path_factory):
     gt = ds.ground_truth
     points = np.where(gt.visible[..., None], gt.points, np.nan)
     session = Session([c.name for c in ds.cameras], [c.size for c in ds.cameras],
-                      ds.object_points, points, gt.visible.all(-1), "checkerboard")
+                      ds.object_points, points, gt.visible.all(-1), ds.pattern)
     return ds, session
 
 
@@ -94,7 +94,7 @@ def test_grid_tools_refuse_a_board_that_is_not_a_square_grid(exact):
                 session.object_points[::-1]):  # numbered from the other end
         with pytest.raises(ToolError, match="square grid"):
             Session(session.names, session.sizes, obj, session.image_points, session.found,
-                    "asymmetric_circles").grid()
+                    session.pattern).grid()
     assert session.grid() == (8, 11, 15.0)
 
 
