@@ -51,6 +51,15 @@ RIG_CAMERA_COLUMNS = [
     ("aligned centre err mm", ("aligned", "centre_mm")),
     ("RMS px", ("camera_errors", "rms_px")),
 ]
+# compare-tools: (key of run/compare.seed_figures, title, unit), in the table's order.
+COMPARE_FIGURES = [("projection_difference_mean_px", "projection diff. mean", "px"),
+                   ("projection_difference_max_px", "projection diff. max", "px"),
+                   ("rmse_cal_mm", "RMSE_cal", "mm"),
+                   ("centre_error_mm", "camera centre error", "mm"),
+                   ("rotation_error_deg", "camera rotation error", "deg"),
+                   ("aligned_centre_error_mm", "centre error, aligned", "mm"),
+                   ("time_s", "time", "s")]
+
 DETECTION_COLUMNS = [
     ("rate", ("detection_rate",)),
     ("mean px", ("mean_px",)),
@@ -592,11 +601,10 @@ def _share_cell(s: dict) -> str:
 def compare_markdown(report: dict) -> str:
     """report.md of ``stereo-bench compare-tools`` (run/compare.py): every tool's figures with
     95 % intervals over the seeds, its pose cost, and whether its uncertainty is honest."""
-    from ..run.compare import FIGURES
-
     seeds = len(report["seeds"])
     table, pose = report["table"], report.get("pose") or {}
-    rig_figs = [f for f in FIGURES if report["cameras"] > 1 or f[0].startswith(("proj", "time"))]
+    rig_figs = [f for f in COMPARE_FIGURES
+                if report["cameras"] > 1 or f[0].startswith(("proj", "time"))]
     lines = [f"# Calibration tools against the truth: {report['rig']}", "",
              f"{report['cameras']} camera(s), {report['pattern']} board, `{report['environment']}` "
              f"imaging, {seeds} seed(s). Every tool calibrates the same detections of each seed's "

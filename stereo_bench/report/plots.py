@@ -541,10 +541,10 @@ def plot_sweep_curve(curve: dict, path: Path) -> Path:
 def plot_compare(report: dict, path: Path) -> Path:
     """compare-tools.png: per figure, each tool's mean with its 95 % interval over the seeds
     (horizontal bars; log scale where the tools differ by decades)."""
-    from ..run.compare import FIGURES
+    from .markdown import COMPARE_FIGURES
 
     table = {n: r for n, r in report["table"].items() if not r["skipped"] and r["seeds"]}
-    panels = [(k, f"{t} ({u})") for k, t, u in FIGURES
+    panels = [(k, f"{t} ({u})") for k, t, u in COMPARE_FIGURES
               if k != "time_s" and (report["cameras"] > 1 or k.startswith("proj"))]
     costs = (report.get("pose") or {}).get("costs")
     rows = {k: {n: r["figures"][k] for n, r in table.items()} for k, _ in panels}

@@ -55,6 +55,7 @@ from ..core.poses import rodrigues_to_matrix
 from ..scene.dataset import Dataset
 from .exchange import rebased, score_cameras
 from .pipeline import dataset_of, rig_fingerprint
+from ..report.markdown import COMPARE_FIGURES
 from .sweep_stats import t_interval
 
 #: e' Sigma^-1 e below this holds 68.27 % of a 2-D Gaussian: the 1-sigma region in 2-D.
@@ -219,15 +220,6 @@ def seed_figures(entry: dict) -> dict:
     }
 
 
-FIGURES = [("projection_difference_mean_px", "projection diff. mean", "px"),
-           ("projection_difference_max_px", "projection diff. max", "px"),
-           ("rmse_cal_mm", "RMSE_cal", "mm"),
-           ("centre_error_mm", "camera centre error", "mm"),
-           ("rotation_error_deg", "camera rotation error", "deg"),
-           ("aligned_centre_error_mm", "centre error, aligned", "mm"),
-           ("time_s", "time", "s")]
-
-
 def coverage(seeds: list[dict], name: str) -> dict:
     """The share of seeds whose true error lies inside the tool's reported 1-sigma, per
     parameter (over cameras and seeds) and for the projection (over cameras, probed pixels and
@@ -271,7 +263,7 @@ def summarize(seeds: list[dict], names: list[str]) -> dict:
                "failed": [f"seed {s['seed']}: {r['error']}" for s, r in zip(seeds, runs)
                           if "error" in r],
                "skipped": next((r["skipped"] for r in runs if "skipped" in r), None),
-               "figures": {k: t_interval([f[k] for f in figs]) for k, _, _ in FIGURES},
+               "figures": {k: t_interval([f[k] for f in figs]) for k, _, _ in COMPARE_FIGURES},
                "coverage": coverage(seeds, name)}
         table[name] = row
     return table

@@ -94,8 +94,8 @@ class Session:
             expected = np.stack([xs[0] + i * spacing, ys[0] + j * spacing], axis=1)
             ok = np.allclose(obj[:, :2], expected, atol=1e-6) and np.allclose(obj[:, 2], 0)
         if not ok:
-            raise ToolError(f"the {self.pattern.kind} board's points are not a square grid numbered "
-                            f"row by row; this tool describes only such boards")
+            raise ToolError(f"the {self.pattern.kind} board's points are not a square grid "
+                            f"numbered row by row; this tool describes only such boards")
         return cols, rows, spacing
 
 
