@@ -52,6 +52,38 @@ def test_every_tool_finds_the_truth_from_exact_detections(exact, tmp_path, name)
     assert scored["rig"]["rmse_cal_mm"] < 100 * TOLERANCE_PX[name]
 
 
+@pytest.fixture(scope="module")
+def square_pixels(tmp_path_factory):
+    """The quick-start pair with a lens anipose's and caliscope's cameras hold (one focal
+    length, the principal point at the image centre, k1 only), exact detections."""
+    rig = quickstart(16)
+    for cam in rig["cameras"]:
+        cam.update(fx=600.0, fy=600.0, cx=319.5, cy=239.5, dist=[-0.2, 0, 0, 0, 0, 0, 0, 0])
+    ds = write_dataset(parse_rig(rig), tmp_path_factory.mktemp("square") / "ds")
+    gt = ds.ground_truth
+    points = np.where(gt.visible[..., None], gt.points, np.nan)
+    return ds, Session([c.name for c in ds.cameras], [c.size for c in ds.cameras],
+                       ds.object_points, points, gt.visible.all(-1), ds.pattern)
+
+
+# aniposelib takes float32 corners (3e-6 px measured); caliscope stops at its least-squares
+# tolerance with the board's points free (1e-4 px mean, 8e-4 px max measured).
+@pytest.mark.parametrize("name,tolerance_px", [("anipose", 1e-4), ("caliscope", 1e-3)])
+def test_anipose_and_caliscope_find_a_lens_their_cameras_hold(square_pixels, tmp_path, name,
+                                                               tolerance_px):
+    from stereo_bench.run.exchange import rebased
+
+    ds, session = square_pixels
+    mod = module(name)
+    if (why := mod.missing()) is not None:
+        pytest.skip(why)
+    result = mod.calibrate(session, tmp_path / name, name)
+    scored = score_cameras(ds, rebased(result.cameras), session.image_points, name)
+    for cam in scored["cameras"].values():
+        assert cam["projection_difference"]["mean_px"] < tolerance_px
+    assert scored["rig"]["rmse_cal_mm"] < 0.01
+
+
 def test_mean_frames_error_is_zero_for_the_truth_and_follows_a_shifted_lens(exact):
     """The true error of a projection uncertainty (module notes of run/compare.py): zero for
     the true camera with the true board poses; a principal point moved by (2, -1) px, the poses
