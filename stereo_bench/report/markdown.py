@@ -52,7 +52,9 @@ RIG_CAMERA_COLUMNS = [
     ("RMS px", ("camera_errors", "rms_px")),
 ]
 # compare-tools: (key of run/compare.seed_figures, title, unit), in the table's order.
-COMPARE_FIGURES = [("projection_difference_mean_px", "projection diff. mean", "px"),
+COMPARE_FIGURES = [("focal_error_px", "focal length error", "px"),
+                   ("principal_point_error_px", "principal point error", "px"),
+                   ("projection_difference_mean_px", "projection diff. mean", "px"),
                    ("projection_difference_max_px", "projection diff. max", "px"),
                    ("rmse_cal_mm", "RMSE_cal", "mm"),
                    ("centre_error_mm", "camera centre error", "mm"),
@@ -586,9 +588,9 @@ def twin_markdown(results: dict) -> str:
 
 def _interval(s: dict, digits: int = 3) -> str:
     """mean [95 % interval] of a sweep_stats.t_interval summary; the mean alone for one seed."""
-    if not s or s.get("mean") is None:
+    if not s or s.get("mean") is None or not math.isfinite(s["mean"]):
         return "–"
-    if s.get("ci_low") is None:
+    if s.get("ci_low") is None or not math.isfinite(s["ci_low"]):
         return _num(s["mean"], digits)
     return f"{_num(s['mean'], digits)} [{_num(s['ci_low'], digits)}, {_num(s['ci_high'], digits)}]"
 
@@ -603,29 +605,46 @@ def compare_markdown(report: dict) -> str:
     95 % intervals over the seeds, its pose cost, and whether its uncertainty is honest."""
     seeds = len(report["seeds"])
     table, pose = report["table"], report.get("pose") or {}
-    rig_figs = [f for f in COMPARE_FIGURES
-                if report["cameras"] > 1 or f[0].startswith(("proj", "time"))]
+    ran = {n: r for n, r in table.items() if not r["skipped"]}
     lines = [f"# Calibration tools against the truth: {report['rig']}", "",
              f"{report['cameras']} camera(s), {report['pattern']} board, `{report['environment']}` "
              f"imaging, {seeds} seed(s). Every tool calibrates the same detections of each seed's "
              f"session as its users run it; its own file is read back and scored against the "
              f"truth. Cells: mean [95 % Student-t interval over the seeds].", ""]
-    pose_cols = "costs" in pose
-    lines += _header("tool", *[f"{t} {u}" for _, t, u in rig_figs],
-                     *(["pose cost mm"] if pose_cols else []), "seeds")
-    for name, row in table.items():
-        if row["skipped"]:
-            continue
-        cells = [_interval(row["figures"][k], 4 if u == "deg" else 3) for k, _, u in rig_figs]
+
+    def rows(keys: tuple, extra=None) -> list[str]:
+        figs = [f for f in COMPARE_FIGURES if f[0] in keys]
+        out = _header("tool", *[f"{t} {u}" for _, t, u in figs],
+                      *([extra[0]] if extra else []), "seeds")
+        for name, row in ran.items():
+            cells = [_interval(row["figures"][k], 4 if u == "deg" else 3) for k, _, u in figs]
+            if extra:
+                cells.append(extra[1](name))
+            out.append(f"| {name} | " + " | ".join(cells) + f" | {row['seeds']} |")
+        return out
+
+    lines += ["## The cameras", "", "Errors of each camera's intrinsics (mean over the cameras); "
+              "the projection difference is how far the tool's lens projects the true rays over "
+              "the whole image, after the best-fit rotation of the camera frame.", ""]
+    lines += rows(("focal_error_px", "principal_point_error_px", "projection_difference_mean_px",
+                   "projection_difference_max_px", "time_s"))
+    if report["cameras"] > 1:
+        pose_cols = "costs" in pose
+        lines += ["", "## The rig", "", "RMSE_cal: the board's points triangulated through the "
+                  "tool's cameras against their true positions. Camera errors: the other "
+                  "cameras' centres and rotations with camera 0 as the reference (mean), and "
+                  "the centres after a similarity alignment of all cameras (3+ cameras).", ""]
+        lines += rows(("rmse_cal_mm", "centre_error_mm", "rotation_error_deg",
+                       "aligned_centre_error_mm"),
+                      ("pose cost mm", lambda n: _interval(pose["costs"].get(n, {})))
+                      if pose_cols else None)
         if pose_cols:
-            cells.append(_interval(pose["costs"].get(name, {})))
-        lines.append(f"| {name} | " + " | ".join(cells) + f" | {row['seeds']} |")
-    if pose_cols:
-        lines += ["", f"Pose cost: pose-eval's paired MPJPE of the body triangulated through the "
-                      f"tool's cameras minus through the true ones, on the same keypoints "
-                      f"(floor, true cameras: {_interval(pose['floor'])} mm); {pose['about']}."]
-    elif pose.get("error"):
-        lines += ["", f"Pose cost not measured: {pose['error']}."]
+            lines += ["", f"Pose cost: pose-eval's paired MPJPE of the body triangulated "
+                          f"through the tool's cameras minus through the true ones, on the same "
+                          f"keypoints (floor, true cameras: {_interval(pose['floor'])} mm); "
+                          f"{pose['about']}."]
+        elif pose.get("error"):
+            lines += ["", f"Pose cost not measured: {pose['error']}."]
     cover = {n: r["coverage"] for n, r in table.items() if r["coverage"]}
     if cover:
         lines += ["", "## Is each tool's own uncertainty honest?", "",
@@ -633,9 +652,9 @@ def compare_markdown(report: dict) -> str:
                   "reported 1-sigma, with its 95 % Wilson interval; an honest uncertainty holds "
                   "68 %. Projection: the true error of the mean-frames projection at 9 pixels "
                   f"inside the 68 % ellipse of the reported covariance (e' S^-1 e <= "
-                  f"{report['chi2_2d_68']:.2f}); median of |e| / worst-direction sigma beside "
-                  "it.", ""]
-        lines += _header("tool", "parameters (all)", "projection", "|e| / sigma median",
+                  f"{report['chi2_2d_68']:.2f}); beside it the median of the error's length over "
+                  "the worst-direction sigma.", ""]
+        lines += _header("tool", "parameters (all)", "projection", "error / sigma (median)",
                          "worst parameter")
         for name, c in cover.items():
             params = c.get("parameters", {})

@@ -544,8 +544,10 @@ def plot_compare(report: dict, path: Path) -> Path:
     from .markdown import COMPARE_FIGURES
 
     table = {n: r for n, r in report["table"].items() if not r["skipped"] and r["seeds"]}
+    shown = ("projection_difference_mean_px", "projection_difference_max_px", "rmse_cal_mm",
+             "centre_error_mm")
     panels = [(k, f"{t} ({u})") for k, t, u in COMPARE_FIGURES
-              if k != "time_s" and (report["cameras"] > 1 or k.startswith("proj"))]
+              if k in shown and (report["cameras"] > 1 or k.startswith("proj"))]
     costs = (report.get("pose") or {}).get("costs")
     rows = {k: {n: r["figures"][k] for n, r in table.items()} for k, _ in panels}
     if costs:

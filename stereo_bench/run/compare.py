@@ -204,7 +204,11 @@ def seed_figures(entry: dict) -> dict:
     aligned = (rig.get("aligned") or {}).get("cameras", {})
     fixed = rig.get("camera_errors", {})
     others = list(fixed)[1:]  # the reference camera's errors are 0 by construction
+    errors = [c["parameter_errors"] for c in cams]
     return {
+        "focal_error_px": float(np.mean([(abs(e["fx"]) + abs(e["fy"])) / 2 for e in errors])),
+        "principal_point_error_px": float(np.mean([math.hypot(e["cx"], e["cy"])
+                                                   for e in errors])),
         "projection_difference_mean_px": float(np.mean(
             [c["projection_difference"]["mean_px"] for c in cams])),
         "projection_difference_max_px": float(np.max(
