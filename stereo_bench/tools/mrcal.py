@@ -110,13 +110,16 @@ def calibrate(session: Session, out_dir: Path, name: str = "mrcal") -> ToolResul
     except subprocess.TimeoutExpired:
         raise ToolError(f"mrcal: mrcal-calibrate-cameras ran past {TIMEOUT_S} s") from None
     elapsed = time.perf_counter() - t0
-    write_text(out_dir / "tool.log", done.stdout + done.stderr)
+    write_text(out_dir / "tool.log", done.stdout + done.stderr)  # what its users read
     models = [out_dir / f"camera-{c}.cameramodel" for c in range(len(session.names))]
     if done.returncode != 0 or not all(m.is_file() for m in models):
         last = (done.stderr.strip().splitlines() or ["no message"])[-1]
         raise ToolError(f"mrcal: mrcal-calibrate-cameras failed ({last}; {out_dir}/tool.log)")
     cams = [read_camera(m).with_params(name=n) for m, n in zip(models, session.names)]
-    log = {"command": " ".join(cmd[1:]), "frames": len(frames)}
+    said = done.stdout + done.stderr
+    # Boards its outlier rejection emptied (mrcal warns that their poses are then free).
+    log = {"command": " ".join(cmd[1:]), "frames": len(frames),
+           "boards_thrown_out": said.count("had almost all of its points thrown out")}
     return ToolResult(cams, out_dir, "mrcal", elapsed, log,
                       _uncertainty(session, models, cams, frames, out_dir))
 
