@@ -4,7 +4,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test venv clean mrcal-env blender
+.PHONY: demo test venv clean mrcal-env multical-env blender
 
 $(BIN)/stereo-bench: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -30,6 +30,9 @@ $(BIN)/stereo-bench: pyproject.toml
 	touch $@
 
 MRCAL_PYTHON ?= $(firstword $(foreach v,3.12 3.13,$(shell ls $(HOME)/.pyenv/versions/$(v)*/bin/python$(v) /usr/local/bin/python$(v) /usr/bin/python$(v) 2>/dev/null)))
+# multical's command line runs on Python 3.10 only: it dies at import on 3.11+ (a dataclass
+# field with a mutable default), and the numpy it needs has no wheels past 3.11.
+MULTICAL_PYTHON ?= $(firstword $(shell ls $(HOME)/.pyenv/versions/3.10*/bin/python3.10 /usr/local/bin/python3.10 /usr/bin/python3.10 2>/dev/null))
 
 
 # The Blender worker environment (bpy 5.0.1, mediapipe 0.10.21, numpy<2; about 2 GB): the
@@ -44,6 +47,16 @@ mrcal-env:
 	$(VENV)/mrcal/bin/python -m pip install --quiet numpy scipy numpysane gnuplotlib pyyaml \
 		opencv-python-headless && \
 	$(VENV)/mrcal/bin/python -m pip install --quiet --no-deps mrcal==2.5.2.post1
+
+# multical, run by compare-tools as `multical calibrate` on the rendered images (650 MB:
+# its OpenCV 4.6 and numba; not part of `make venv`). The pins: numpy < 1.24 (multical uses
+# np.bool) and the last scipy, matplotlib, numba, numpy-quaternion and contourpy that take that
+# numpy; multical itself pins opencv-contrib-python <= 4.7 (4.6.0.66, built against numpy 1.x).
+multical-env:
+	@if [ -z "$(MULTICAL_PYTHON)" ]; then echo "no python3.10 found: the multical tool will skip"; exit 0; fi; \
+	$(MULTICAL_PYTHON) -m venv $(VENV)/multical && \
+	$(VENV)/multical/bin/python -m pip install --quiet multical==0.4.0 "numpy<1.24" "scipy<1.12" \
+		"matplotlib<3.9" "numba<0.59" "numpy-quaternion<2024" "contourpy<1.3"
 
 venv: $(BIN)/stereo-bench
 

@@ -70,7 +70,7 @@ def parameter_rmse(estimate: Camera, truth: Camera) -> float:
     return float(np.sqrt(np.mean([err[k] ** 2 for k in PAPER_PARAMS if k in err])))
 
 
-def _grid(camera: Camera, n: tuple[int, int]) -> np.ndarray:
+def grid_pixels(camera: Camera, n: tuple[int, int]) -> np.ndarray:
     """(nu * nv, 2) pixels from corner to corner of the image (OpenCV pixel centres)."""
     u = np.linspace(0.0, camera.width - 1, n[0])
     v = np.linspace(0.0, camera.height - 1, n[1])
@@ -82,7 +82,7 @@ def projection_difference_map(estimate: Camera, truth: Camera,
     """(rows, columns) px: per grid pixel, how far the estimate projects the true camera's ray
     (intrinsics only, no rotation compensation); the map behind ``projection_difference``, NaN
     where the estimate is not valid."""
-    uv = _grid(truth, grid)
+    uv = grid_pixels(truth, grid)
     rays, valid = _true_rays(estimate, truth, uv)
     diff = np.full(len(uv), np.nan)  # NaN where the estimate is invalid (see below)
     diff[valid] = np.linalg.norm(estimate.project_cam(rays[valid]) - uv[valid], axis=1)
@@ -113,7 +113,7 @@ def validity(estimate: Camera, truth: Camera | None = None, grid: tuple[int, int
     high-order model can fold inside the image (TRAPS.md); triangulation and projection through
     it are meaningless there. Given the ``truth``, only the pixels where the true lens sees
     count: a circular fisheye's black surround is not a fault of its estimate."""
-    uv = _grid(estimate, grid)
+    uv = grid_pixels(estimate, grid)
     if truth is not None and truth.model != "opencv":  # a true pinhole sees every pixel
         uv = uv[truth.has_ray(uv)]
     ok = estimate.invertible(uv)
@@ -144,7 +144,7 @@ def projection_difference(estimate: Camera, truth: Camera, grid: tuple[int, int]
     of the rays that minimizes the squared pixel differences -- what remains when a rotation of
     the camera frame, which extrinsics would absorb, is explained away (as mrcal's projection_diff).
     """
-    uv = _grid(truth, grid)
+    uv = grid_pixels(truth, grid)
     rays, valid = _true_rays(estimate, truth, uv)
     left_out = {"points_left_out": int((~valid).sum()),
                 "fraction_left_out": float((~valid).mean())}

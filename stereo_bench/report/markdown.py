@@ -624,8 +624,11 @@ def compare_markdown(report: dict) -> str:
         return out
 
     lines += ["## The cameras", "", "Errors of each camera's intrinsics (mean over the cameras); "
-              "the projection difference is how far the tool's lens projects the true rays over "
-              "the whole image, after the best-fit rotation of the camera frame.", ""]
+              "the projection difference is how far the tool's lens projects each true ray of "
+              "a grid over the whole image from its pixel (mean over the cameras of the mean, "
+              "worst camera's max). A lens the suite's camera model cannot hold (mrcal's "
+              "splined) is compared through its own projection after turning its camera frame "
+              "onto the true one (its frame is a gauge), and has no parameters to compare.", ""]
     lines += rows(("focal_error_px", "principal_point_error_px", "projection_difference_mean_px",
                    "projection_difference_max_px", "time_s"))
     if report["cameras"] > 1:

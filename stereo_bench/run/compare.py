@@ -138,12 +138,31 @@ def _run_tool(name: str, session: tools.Session, ds: Dataset, trial: TrialPaths)
         entry = {"tool": name, "file": str(result.path), "format": result.fmt,
                  "time_s": result.time_s, "log": result.log,
                  "cameras_estimated": [c.to_dict() for c in result.cameras]}
-        entry.update(score_cameras(ds, result.cameras, session.image_points, str(result.path)))
+        if result.proxy is not None:
+            entry.update(_score_proxy(ds, result, session))
+        else:
+            entry.update(score_cameras(ds, result.cameras, session.image_points,
+                                       str(result.path)))
         entry["uncertainty"] = check_uncertainty(ds, result)
     except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error, OSError) as e:
         entry = {"tool": name, "error": f"{type(e).__name__}: {e}"}
     entry["wall_time_s"] = time.perf_counter() - t0
     return strict(entry)
+
+
+def _score_proxy(ds: Dataset, result: tools.ToolResult, session: tools.Session) -> dict:
+    """A lens the camera model cannot hold, scored through its stand-ins (ToolResult.proxy):
+    the rig as the suite scores any rig, each camera's projection difference as the tool's own
+    projection gives it; its parameters are not the camera model's and are not compared."""
+    cams, points, projection = result.proxy(
+        [c.with_params(rvec=np.zeros(3), tvec=np.zeros(3)) for c in ds.cameras],
+        session.image_points)
+    scored = score_cameras(ds, cams, points, str(result.path))
+    for cam, proj in zip(scored["cameras"].values(), projection):
+        cam.update(projection_difference=proj, parameter_errors=None, validity=None)
+    scored["note"] = ("a lens the suite's camera model cannot hold: scored through the tool's "
+                      "own projection, each camera frame turned onto the true one first")
+    return scored
 
 
 def _pose_ready(trial: TrialPaths, fp: str, entries: dict) -> None:
@@ -204,11 +223,12 @@ def seed_figures(entry: dict) -> dict:
     aligned = (rig.get("aligned") or {}).get("cameras", {})
     fixed = rig.get("camera_errors", {})
     others = list(fixed)[1:]  # the reference camera's errors are 0 by construction
-    errors = [c["parameter_errors"] for c in cams]
+    errors = [c["parameter_errors"] for c in cams if c["parameter_errors"]]
     return {
-        "focal_error_px": float(np.mean([(abs(e["fx"]) + abs(e["fy"])) / 2 for e in errors])),
+        "focal_error_px": float(np.mean([(abs(e["fx"]) + abs(e["fy"])) / 2 for e in errors]))
+        if errors else math.nan,
         "principal_point_error_px": float(np.mean([math.hypot(e["cx"], e["cy"])
-                                                   for e in errors])),
+                                                   for e in errors])) if errors else math.nan,
         "projection_difference_mean_px": float(np.mean(
             [c["projection_difference"]["mean_px"] for c in cams])),
         "projection_difference_max_px": float(np.max(

@@ -20,6 +20,7 @@ pycolmap           OpenCV's cameras refined by pycolmap's bundle adjuster with i
 anipose            aniposelib's CameraGroup.calibrate_rows (init, then its bundle adjustment)
 caliscope          caliscope's intrinsics per camera, then its capture volume (scripting guide)
 mrcal              mrcal-calibrate-cameras, LENSMODEL_OPENCV8 (in mrcal's own environment)
+mrcal-splined      the same with its splined stereographic model, scored through mrcal
 =================  ================================================================================
 
 The tools that report an uncertainty return it in ``ToolResult.uncertainty``: per camera, the
@@ -48,6 +49,7 @@ MODULES = {
     "anipose": "anipose",
     "caliscope": "caliscope",
     "mrcal": "mrcal",
+    "mrcal-splined": "mrcal",
 }
 TOOLS = tuple(MODULES)
 
@@ -112,6 +114,11 @@ class ToolResult:
     time_s: float
     log: dict = field(default_factory=dict)
     uncertainty: dict = field(default_factory=dict)
+    #: For a lens the suite's camera model cannot hold (``cameras`` is then empty):
+    #: ``proxy(true_cameras, image_points) -> (cameras, image_points, projection)``, stand-ins
+    #: that triangulate as the tool's lens does, the detections as seen through them, and per
+    #: camera the projection difference computed through the tool's own projection.
+    proxy: object = None
 
 
 def module(name: str):

@@ -1,6 +1,7 @@
 """mrcal's own calibration tool, as its users run it: ``mrcal-calibrate-cameras`` on a corners
-file, with LENSMODEL_OPENCV8 (mrcal's recommended OpenCV model for a lens that is not wide; its
-splined models cannot be read back into the suite's camera model, so they are not scored here).
+file, with LENSMODEL_OPENCV8 (``mrcal``) or its splined stereographic model (``mrcal-splined``,
+LENSMODEL_SPLINED_STEREOGRAPHIC_order=3, 16 knots across and as many down as the image's aspect
+keeps square, over 1.6 times the horizontal field OpenCV's focal guess gives).
 
 mrcal has no wheel for Python < 3.12: it runs in its own environment (``make mrcal-env``, with
 OpenCV, which its seeding uses), found at SYNTHCAL_MRCAL_PYTHON or .venv/mrcal.
@@ -15,7 +16,9 @@ OpenCV, which its seeding uses), found at SYNTHCAL_MRCAL_PYTHON or .venv/mrcal.
   back in mm), ``--object-width-n``/``--object-height-n``, ``--imagersize`` (or blank images of
   each camera's size when the sizes differ), every other setting mrcal's default (outlier
   rejection, regularization, the board's warp fitted).
-* The answer: ``camera-<i>.cameramodel``, read back with io.mrcal.
+* The answer: ``camera-<i>.cameramodel``, read back with io.mrcal. A splined lens has no form
+  in the suite's camera model: its ToolResult has no cameras but a ``proxy`` that scores it
+  through mrcal's own projection (``splined_proxy``).
 * Its uncertainty: mrcal.projection_uncertainty at the probe pixels (tools.probe_pixels) at the
   median distance of the boards, with the board poses of its solve (mrcal_worker.py); where mrcal
   cannot compute it (a singular solve: a board whose every point its outlier rejection dropped
@@ -33,13 +36,20 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..core.camera import Camera
 from ..core.files import write_text
 from ..io.mrcal import read_camera
 from . import Session, ToolError, ToolResult, probe_pixels
 
-NAME = ("mrcal",)
-ABOUT = "mrcal-calibrate-cameras, LENSMODEL_OPENCV8, mrcal's defaults (mrcal 2.5)"
+NAME = ("mrcal", "mrcal-splined")
+ABOUT = {"mrcal": "mrcal-calibrate-cameras, LENSMODEL_OPENCV8, mrcal's defaults (mrcal 2.5)",
+         "mrcal-splined": "mrcal-calibrate-cameras, LENSMODEL_SPLINED_STEREOGRAPHIC (order 3, "
+                          "16 knots across), mrcal's defaults; scored through mrcal's projection"}
 LENSMODEL = "LENSMODEL_OPENCV8"
+SPLINE_KNOTS_X = 16
+#: The spline's horizontal field over the lens's: its knots must reach the image's corners
+#: after the camera frame's gauge rotation (the splined core stays at mrcal's seed).
+SPLINE_FIELD_MARGIN = 1.6
 TIMEOUT_S = 1800
 
 
@@ -85,14 +95,26 @@ def _focal(session: Session) -> float:
     return float(np.sqrt(K[0, 0] * K[1, 1]))
 
 
+def lensmodel(name: str, session: Session, focal: float) -> str:
+    if name == "mrcal":
+        return LENSMODEL
+    width, height = session.sizes[0]
+    field = SPLINE_FIELD_MARGIN * 2 * np.degrees(np.arctan2(width / 2, focal))
+    ny = max(2, round(SPLINE_KNOTS_X * height / width))
+    return (f"LENSMODEL_SPLINED_STEREOGRAPHIC_order=3_Nx={SPLINE_KNOTS_X}_Ny={ny}_"
+            f"fov_x_deg={int(np.ceil(field))}")
+
+
 def calibrate(session: Session, out_dir: Path, name: str = "mrcal") -> ToolResult:
     width_n, height_n, spacing = session.grid()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     text, frames = _corners(session, width_n, height_n)
     corners = write_text(out_dir / "corners.vnl", text)
+    focal = _focal(session)
+    lens = lensmodel(name, session, focal)
     cmd = [str(python().parent / "mrcal-calibrate-cameras"), "--corners-cache", str(corners),
-           "--lensmodel", LENSMODEL, "--focal", f"{_focal(session):.3f}",
+           "--lensmodel", lens, "--focal", f"{focal:.3f}",
            "--object-spacing", repr(spacing), "--object-width-n", str(width_n),
            "--object-height-n", str(height_n), "--outdir", str(out_dir)]
     if len(set(session.sizes)) == 1:
@@ -115,11 +137,14 @@ def calibrate(session: Session, out_dir: Path, name: str = "mrcal") -> ToolResul
     if done.returncode != 0 or not all(m.is_file() for m in models):
         last = (done.stderr.strip().splitlines() or ["no message"])[-1]
         raise ToolError(f"mrcal: mrcal-calibrate-cameras failed ({last}; {out_dir}/tool.log)")
-    cams = [read_camera(m).with_params(name=n) for m, n in zip(models, session.names)]
     said = done.stdout + done.stderr
     # Boards its outlier rejection emptied (mrcal warns that their poses are then free).
     log = {"command": " ".join(cmd[1:]), "frames": len(frames),
            "boards_thrown_out": said.count("had almost all of its points thrown out")}
+    if name == "mrcal-splined":
+        return ToolResult([], out_dir, "mrcal", elapsed, log,
+                          proxy=splined_proxy(models, session, out_dir))
+    cams = [read_camera(m).with_params(name=n) for m, n in zip(models, session.names)]
     return ToolResult(cams, out_dir, "mrcal", elapsed, log,
                       _uncertainty(session, models, cams, frames, out_dir))
 
@@ -129,7 +154,8 @@ def _uncertainty(session: Session, models, cams, frames: list[int], out_dir: Pat
     could not compute it."""
     pixels = [probe_pixels(*c.size) for c in cams]
     # The median distance of the boards' centres from each camera, through mrcal's own poses.
-    request = {"models": [str(m) for m in models], "pixels": [p.tolist() for p in pixels],
+    request = {"mode": "uncertainty", "models": [str(m) for m in models],
+               "pixels": [p.tolist() for p in pixels],
                "distance": [1.0] * len(cams)}
     first = _worker(request, out_dir)
     centre = session.object_points.mean(0)
@@ -162,3 +188,67 @@ def _worker(request: dict, out_dir: Path) -> dict:
         raise ToolError(f"mrcal: its projection uncertainty failed: "
                         f"{(done.stderr.strip().splitlines() or ['no message'])[-1]}")
     return json.loads(done.stdout)
+
+
+def _rt_cam_ref(path: Path) -> np.ndarray:
+    """rt_cam_ref of a .cameramodel (mrcal's literal dict), whatever its lens."""
+    import ast
+
+    model = ast.literal_eval(path.read_text())
+    return np.asarray(model.get("rt_cam_ref", model.get("extrinsics")), dtype=float)
+
+
+def splined_proxy(models, session: Session, out_dir: Path):
+    """Scoring of a lens the suite's camera model cannot hold (a splined one), through mrcal's
+    own projection: ``proxy(truth, image_points) -> (cameras, points, projection)``.
+
+    Its camera frames are a gauge (the spline absorbs any rotation of them, and mrcal keeps the
+    core at its seed): each is first turned by the rotation R_c that best maps its rays of the
+    detected pixels onto the true camera's rays of the same pixels (mrcal's Procrustes fit;
+    where no board was seen the spline extrapolates, and is not trusted for the fit).
+    ``cameras`` are then ideal pinholes (the true camera's focal length, no distortion,
+    centred) with the rig's poses turned likewise, and ``points`` the detections' rays through the spline seen through them:
+    triangulating those is triangulating the spline's rays, with residuals weighed as the
+    camera's pixels. ``projection``, per camera: how far the spline projects each true ray of a
+    grid of pixels (64 x 48, as evaluate.metrics) from its pixel, after R_c (``mean_px``,
+    ``max_px``) and as written (``direct_mean_px``, ``direct_max_px``), and R_c's angle."""
+    from ..evaluate.metrics import grid_pixels
+
+    def unit_rays(camera, uv):
+        rays = np.column_stack([camera.unproject(uv), np.ones(len(uv))])
+        return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+    def proxy(truth, image_points):
+        grids = [grid_pixels(t, (64, 48)) for t in truth]
+        seen = np.isfinite(image_points).all(-1)
+        pixels = [image_points[c][seen[c]] for c in range(len(truth))]
+        request = {"mode": "lens", "models": [str(m) for m in models],
+                   "true_rays": [unit_rays(t, g).tolist() for t, g in zip(truth, grids)],
+                   "grid": [g.tolist() for g in grids],
+                   "pixels": [p.tolist() for p in pixels],
+                   "pixel_rays": [unit_rays(t, p).tolist() for t, p in zip(truth, pixels)]}
+        reply = _worker(request, out_dir)["cameras"]
+        turns = [np.asarray(e["R"], dtype=float) for e in reply]
+        rt = [_rt_cam_ref(m) for m in models]
+        R0 = turns[0] @ cv2.Rodrigues(rt[0][:3])[0]  # the true camera 0's from mrcal's ref
+        cams, points, projection = [], np.full(image_points.shape, np.nan), []
+        for c, (t, e, Rc) in enumerate(zip(truth, reply, turns)):
+            Re = cv2.Rodrigues(rt[c][:3])[0]
+            R = Rc @ Re @ R0.T  # true-gauge cam_c from true-gauge cam_0
+            tvec = Rc @ rt[c][3:] - R @ (turns[0] @ rt[0][3:])
+            cams.append(Camera(session.names[c], *session.sizes[c], t.fx, t.fx, 0.0, 0.0, 0.0,
+                               np.zeros(8), cv2.Rodrigues(R)[0].ravel(), tvec))
+            rays = np.asarray(e["rays"], dtype=float).reshape(-1, 3) @ Rc.T
+            ahead = rays[:, 2] > 0
+            uv = np.full((len(rays), 2), np.nan)
+            uv[ahead] = t.fx * rays[ahead, :2] / rays[ahead, 2:]
+            points[c][seen[c]] = uv
+            direct, turned = np.asarray(e["direct"]), np.asarray(e["compensated"])
+            projection.append({"mean_px": float(turned.mean()), "max_px": float(turned.max()),
+                               "direct_mean_px": float(direct.mean()),
+                               "direct_max_px": float(direct.max()),
+                               "rotation_deg": float(np.degrees(np.linalg.norm(
+                                   cv2.Rodrigues(Rc)[0])))})
+        return cams, points, projection
+
+    return proxy

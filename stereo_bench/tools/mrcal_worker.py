@@ -4,12 +4,20 @@ pixels and distance, and the board poses of its solve, as JSON on stdout.
 
     python mrcal_worker.py REQUEST.json
 
-REQUEST: {"models": [paths, camera order], "pixels": [[[u, v], ...] per camera],
-"distance": [mm per camera]}. Reply: {"cameras": [{"covariance": (P, 2, 2) px^2 or null,
-"error": why not, "board_poses": {frame index of the solve: [r(3), t(3)] cam_from_board}}]}.
-The covariance is mrcal.projection_uncertainty(what="covariance") of the points at that
-distance along the model's rays (its default mean-frames method, the noise taken from the
-solve's residuals)."""
+REQUEST {"mode": "uncertainty", "models": [paths, camera order], "pixels": [[[u, v], ...] per
+camera], "distance": [mm per camera]}. Reply: {"cameras": [{"covariance": (P, 2, 2) px^2 or
+null, "error": why not, "board_poses": {frame index of the solve: [r(3), t(3)]
+cam_from_board}}]}. The covariance is mrcal.projection_uncertainty(what="covariance") of the
+points at that distance along the model's rays (its default mean-frames method, the noise taken
+from the solve's residuals).
+
+REQUEST {"mode": "lens", "models": [...], "true_rays": [(G, 3) unit rays per camera, of grid
+pixels], "grid": [(G, 2) px], "pixels": [(M, 2) px per camera], "pixel_rays": [(M, 3) their true
+unit rays]}, for a lens the suite's camera model cannot hold (a splined one). Reply per camera:
+"R" (3 x 3) the rotation that best maps the model's rays of the pixels (where boards were seen)
+onto the true ones (its frame is a gauge: v_true ~ R v), "direct" and "compensated" (G,) px, how
+far the model projects each true ray of the grid from its pixel as is and rotated back by R,
+and "rays" (M, 3), the model's unit rays of the pixels."""
 
 import json
 import sys
@@ -32,8 +40,29 @@ def _poses(model, icam: int) -> dict:
     return out
 
 
+def _lens(request: dict) -> dict:
+    reply = []
+    for path, true_rays, grid, pixels, pixel_rays in zip(
+            request["models"], request["true_rays"], request["grid"], request["pixels"],
+            request["pixel_rays"]):
+        lens = mrcal.cameramodel(path).intrinsics()
+        v_true = np.asarray(true_rays, dtype=float)
+        q = np.asarray(grid, dtype=float)
+        px = np.asarray(pixels, dtype=float).reshape(-1, 2)
+        rays = mrcal.unproject(px, *lens, normalize=True)
+        R = mrcal.align_procrustes_vectors_R01(np.asarray(pixel_rays, dtype=float), rays)
+        direct = np.linalg.norm(mrcal.project(v_true, *lens) - q, axis=-1)
+        compensated = np.linalg.norm(mrcal.project(v_true @ R, *lens) - q, axis=-1)
+        reply.append({"R": R.tolist(), "direct": direct.tolist(),
+                      "compensated": compensated.tolist(), "rays": rays.tolist()})
+    return {"cameras": reply}
+
+
 def main() -> None:
     request = json.load(open(sys.argv[1]))
+    if request.get("mode") == "lens":
+        json.dump(_lens(request), sys.stdout)
+        return
     reply = []
     for icam, (path, pixels, distance) in enumerate(zip(request["models"], request["pixels"],
                                                         request["distance"])):
