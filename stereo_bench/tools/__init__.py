@@ -6,7 +6,8 @@ the calibrators', not the detectors'. Each tool writes its answer in its own fil
 the answer is read back through the suite's reader of that format (``stereo_bench.io``): what is
 scored is what a user of the tool would load. Every tool module has
 
-* ``NAME`` (the names the command takes), ``ABOUT`` (one line: what is run, with which model);
+* ``ABOUT``: one line, what is run with which model (a dict by tool name when the module runs
+  several: ``MODULES`` below says which names a module serves);
 * ``missing() -> str | None``: why the tool cannot run on this machine (its library or its
   environment is absent, with the command that installs it), or None;
 * ``calibrate(session, out_dir, name) -> ToolResult``, raising ToolError (or ValueError) with a
@@ -25,9 +26,10 @@ mrcal-splined      the same with its splined stereographic model, scored through
 
 The tools that report an uncertainty return it in ``ToolResult.uncertainty``: per camera, the
 1-sigma of each intrinsic parameter it reports (``parameters``), and/or its projection
-covariance at chosen pixels (``projection``: pixels (P, 2), distance mm, covariances (P, 2, 2)),
-which compare-tools checks against the true error; or ``error``: why the tool could not
-compute it this time.
+covariance at chosen pixels (``projection``: ``pixels`` (P, 2), ``distance_mm``, ``covariance``
+(P, 2, 2) px^2, and the ``board_poses`` {frame: (rvec, tvec)} cam_from_board of its solve, which
+define its camera frame), which compare-tools checks against the true error; or ``error``: why
+the tool could not compute it this time.
 """
 
 from __future__ import annotations

@@ -22,7 +22,6 @@ import numpy as np
 from ..io import anipose as anipose_file
 from . import Session, ToolError, ToolResult
 
-NAME = ("anipose",)
 ABOUT = ("aniposelib 0.8 CameraGroup.calibrate_rows with anipose's default cameras (fx = fy, "
          "centred principal point, k1)")
 

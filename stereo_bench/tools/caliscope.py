@@ -22,7 +22,6 @@ import numpy as np
 from ..io import caliscope as caliscope_file
 from . import Session, ToolError, ToolResult
 
-NAME = ("caliscope",)
 ABOUT = ("caliscope 0.11: its intrinsic calibration per camera, then CaptureVolume bootstrap, "
          "optimize, 2.5 % filter, optimize (its scripting guide)")
 

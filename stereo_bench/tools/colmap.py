@@ -18,7 +18,6 @@ from ..multiview.bundle import rig_start
 from ..multiview.colmap_ref import colmap_rig_bundle
 from . import Session, ToolError, ToolResult, board_poses, observations, read_back
 
-NAME = ("pycolmap",)
 ABOUT = "COLMAP's OPENCV cameras and rig refined together by pycolmap's bundle adjuster"
 
 

@@ -41,7 +41,6 @@ from ..core.files import write_text
 from ..io.mrcal import read_camera
 from . import Session, ToolError, ToolResult, probe_pixels
 
-NAME = ("mrcal", "mrcal-splined")
 ABOUT = {"mrcal": "mrcal-calibrate-cameras, LENSMODEL_OPENCV8, mrcal's defaults (mrcal 2.5)",
          "mrcal-splined": "mrcal-calibrate-cameras, LENSMODEL_SPLINED_STEREOGRAPHIC (order 3, "
                           "16 knots across), mrcal's defaults; scored through mrcal's projection"}

@@ -24,7 +24,6 @@ from ..multiview.opencv_ref import opencv_multiview
 from ..core.poses import matrix_to_rodrigues
 from . import Session, ToolError, ToolResult, observations, read_back
 
-NAME = ("opencv-stereo", "opencv-multiview")
 ABOUT = {"opencv-stereo": "cv2.calibrateCamera per camera, then cv2.stereoCalibrate "
                           "(CALIB_FIX_INTRINSIC)",
          "opencv-multiview": "cv2.calibrateMultiview, intrinsics by its own calibrateCamera"}

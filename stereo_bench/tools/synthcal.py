@@ -16,7 +16,6 @@ from ..io import opencv_yaml
 from ..multiview.bundle import calibrate_rig
 from . import Session, ToolResult, board_poses, observations, probe_pixels, read_back
 
-NAME = ("synthcal",)
 ABOUT = ("the suite's Zhang (k1, k2, p1, p2, k3, skew) per camera, then its rig bundle "
          "adjustment (a reference)")
 METHOD = "zhang-brown"
