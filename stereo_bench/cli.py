@@ -336,14 +336,16 @@ def cmd_compare_tools(args) -> int:
                          "environment": {"kind": args.environment}}, args.rig)
     cfg = _renderable(cfg)
     names = parse_tools(args.tools)
-    if not 1 <= args.seeds <= MAX_TRIALS:
-        raise ValueError(f"--seeds: expected 1..{MAX_TRIALS}, got {args.seeds}")
+    if not 1 <= args.seeds <= MAX_TRIALS or not 1 <= args.workers <= MAX_WORKERS:
+        raise ValueError(f"--seeds: expected 1..{MAX_TRIALS}; --workers: expected "
+                         f"1..{MAX_WORKERS}; got {args.seeds} and {args.workers}")
     out = Path(args.out or Path("out") / f"{cfg.name}_tools")
     paths = RunPaths(out)
     with locked(out):  # the sessions, the tools' files and the report come from one run
         report = _named(args.rig, compare_tools, cfg, out, names, args.seeds, not args.no_pose,
                         args.motion, lambda text: console.print(text, markup=False,
-                                                                highlight=False))
+                                                                highlight=False),
+                        args.workers)
         write_json(paths.results, report)
         text = compare_markdown(report)
         write_text(paths.report, text)
@@ -537,6 +539,8 @@ def build_parser() -> argparse.ArgumentParser:
                    % ", ".join(TOOLS))
     k.add_argument("--seeds", type=int, default=1,
                    help="sessions rendered with seeds seed, seed+1, ... (default: %(default)s)")
+    k.add_argument("--workers", type=int, default=1,
+                   help="seeds run in parallel processes (default: %(default)s)")
     k.add_argument("--environment", choices=sorted(PRESETS),
                    help="render the session under this imaging preset instead of the rig "
                         "file's (docs/imaging.md)")

@@ -38,6 +38,7 @@ import math
 import subprocess
 import sys
 import time
+from concurrent.futures import as_completed
 from pathlib import Path
 
 import cv2
@@ -57,6 +58,7 @@ from .exchange import rebased, score_cameras
 from .pipeline import dataset_of, rig_fingerprint
 from ..report.markdown import COMPARE_FIGURES
 from .sweep_stats import t_interval
+from .workers import process_pool
 
 #: e' Sigma^-1 e below this holds 68.27 % of a 2-D Gaussian: the 1-sigma region in 2-D.
 CHI2_2D_68 = float(stats.chi2.ppf(0.6827, 2))
@@ -319,14 +321,36 @@ def _pose_cost(out: Path, seeds: int, motion: str, progress=None) -> dict:
                      f"trial(s), keypoints {settings.get('keypoints')}"}
 
 
+def _run_seed_job(args) -> dict:
+    cfg_json, out, names = args
+    return run_seed(RigConfig.model_validate(cfg_json), Path(out), names)
+
+
+def _seeds(cfg: RigConfig, out: Path, names: list[str], seeds: int, workers: int,
+           progress) -> list[dict]:
+    """run_seed over the seeds, in ``workers`` spawned processes when more than one."""
+    configs = [cfg.model_copy(update={"seed": cfg.seed + i}) for i in range(seeds)]
+    if workers <= 1 or seeds == 1:
+        return [run_seed(c, out, names, progress) for c in configs]
+    results = [None] * seeds
+    with process_pool(workers) as pool:
+        futures = {pool.submit(_run_seed_job, (c.model_dump(mode="json"), str(out), names)): i
+                   for i, c in enumerate(configs)}
+        for fut in as_completed(futures):
+            results[futures[fut]] = fut.result()
+            if progress:
+                progress(f"seed {results[futures[fut]]['seed']}: done")
+    return results
+
+
 def compare_tools(cfg: RigConfig, out: Path, names: list[str], seeds: int = 1,
-                  pose: bool = True, motion: str = "walk_circle", progress=None) -> dict:
+                  pose: bool = True, motion: str = "walk_circle", progress=None,
+                  workers: int = 1) -> dict:
     """Every tool on ``seeds`` sessions (seeds cfg.seed, cfg.seed + 1, ...): the results
     (``seeds``: per seed each tool's scored entry; ``table``: ``summarize``; ``pose``: pose-eval's
     results on the tools' rigs, for 2+ cameras)."""
     out = Path(out)
-    results = [run_seed(cfg.model_copy(update={"seed": cfg.seed + i}), out, names, progress)
-               for i in range(seeds)]
+    results = _seeds(cfg, out, names, seeds, workers, progress)
     report = {"kind": "compare-tools", "rig": cfg.name, "environment": cfg.environment.kind,
               "pattern": cfg.pattern.kind, "cameras": len(cfg.cameras), "tools": names,
               "about": {n: _about(n) for n in names}, "seeds": results,
