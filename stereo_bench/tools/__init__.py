@@ -15,6 +15,7 @@ scored is what a user of the tool would load. Every tool module has
 
 =================  ================================================================================
 synthcal           the suite's own: Zhang per camera, then its rig bundle adjustment (a reference)
+synthcal-warp      the same, the board's warp fitted (as mrcal fits it by default)
 opencv-stereo      cv2.calibrateCamera per camera, then cv2.stereoCalibrate (pairs)
 opencv-multiview   cv2.calibrateMultiview, intrinsics by its own calibrateCamera (OpenCV >= 5)
 pycolmap           OpenCV's cameras refined by pycolmap's bundle adjuster with its rig
@@ -45,6 +46,7 @@ from ..core.camera import Camera
 #: Tool name -> module (imported when used: each pulls its own library).
 MODULES = {
     "synthcal": "synthcal",
+    "synthcal-warp": "synthcal",
     "opencv-stereo": "opencv",
     "opencv-multiview": "opencv",
     "pycolmap": "colmap",

@@ -52,7 +52,6 @@ from ..core.files import is_safe_name, write_text
 from ..io import multical as multical_file
 from . import Session, ToolError, ToolResult
 
-NAME = ("multical",)
 ABOUT = ("multical calibrate (multical 0.4, its own ChArUco detection on the images), OpenCV's "
          "standard model, its defaults (in its own environment)")
 TIMEOUT_S = 1800

@@ -33,7 +33,7 @@ def exact(tmp_path_factory):
 # truth to rounding; OpenCV rounds its inputs to float32 (1e-4 px measured); mrcal's defaults
 # regularize the distortion and fit the board's warp, and its OPENCV8 rational terms are not
 # identified by planar views: 0.01 px mean, 0.18 px at the image's corners (measured).
-TOLERANCE_PX = {"synthcal": 1e-9, "pycolmap": 1e-9, "opencv-stereo": 5e-4,
+TOLERANCE_PX = {"synthcal": 1e-9, "synthcal-warp": 1e-9, "pycolmap": 1e-9, "opencv-stereo": 5e-4,
                 "opencv-multiview": 5e-4, "mrcal": 0.05}
 
 
