@@ -526,7 +526,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_score)
 
     k = sub.add_parser("compare-tools", help="grade the calibration tools people run (OpenCV, "
-                                             "mrcal, aniposelib, pycolmap) against the truth",
+                                             "mrcal, aniposelib, caliscope, pycolmap, multical) "
+                                             "against the truth",
                        description="Render the rig's session (one per seed), detect the board "
                                    "once, and let every tool calibrate the same detections as "
                                    "its users run it; each tool's own file is read back and "

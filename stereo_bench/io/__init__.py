@@ -15,6 +15,7 @@ easymocap      EasyMocap intri.yml and extri.yml (:mod:`.easymocap`)
 anipose        anipose / aniposelib calibration.toml (:mod:`.anipose`)
 caliscope      caliscope camera_array.toml (and its older sessions' config.toml) (:mod:`.caliscope`)
 mrcal          mrcal .cameramodel files (:mod:`.mrcal`)
+multical       multical's calibration.json (:mod:`.multical`)
 =============  ===============================================================================
 
 Each module has ``write(cameras, out_dir, ...) -> list[Path]`` and ``read(path) ->
@@ -28,7 +29,7 @@ from pathlib import Path
 from typing import Sequence
 
 from ..core.camera import Camera
-from . import anipose, caliscope, colmap, easymocap, kalibr, mrcal, opencv_yaml
+from . import anipose, caliscope, colmap, easymocap, kalibr, mrcal, multical, opencv_yaml
 
 FORMATS = {
     "opencv": opencv_yaml,
@@ -38,6 +39,7 @@ FORMATS = {
     "anipose": anipose,
     "caliscope": caliscope,
     "mrcal": mrcal,
+    "multical": multical,
 }
 
 
@@ -73,10 +75,12 @@ def guess_format(path) -> str:
             return "caliscope"
         if names & {opencv_yaml.STEREO_FILE, opencv_yaml.MULTICAM_FILE}:
             return "opencv"
+        if multical.FILE in names and multical.looks_like(path / multical.FILE):
+            return "multical"
         raise ValueError(f"{path}: cannot tell the format of this folder (expected cameras.txt, "
                          f"intri.yml and extri.yml, camchain*.yaml, *{mrcal.SUFFIX}, "
-                         f"{anipose.FILE}, {caliscope.FILE}, {opencv_yaml.STEREO_FILE} or "
-                         f"{opencv_yaml.MULTICAM_FILE}); name it with fmt=")
+                         f"{anipose.FILE}, {caliscope.FILE}, {opencv_yaml.STEREO_FILE}, "
+                         f"{opencv_yaml.MULTICAM_FILE} or {multical.FILE}); name it with fmt=")
     if not path.is_file():
         raise ValueError(f"{path}: no such file or folder")
     name = path.name
@@ -92,6 +96,8 @@ def guess_format(path) -> str:
         return "anipose"
     if name in colmap.FILES:
         return "colmap"
+    if name.endswith(".json") and multical.looks_like(path):
+        return "multical"
     if name.endswith((".yaml", ".yml", ".xml", ".json")):
         return "opencv"
     raise ValueError(f"{path}: cannot tell the format from this file name; name it with fmt=")

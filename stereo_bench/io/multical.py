@@ -9,8 +9,8 @@ coefficients k1 k2 p1 p2 k3 of cv2.calibrateCamera, "rational" for 8, + k4 k5 k6
 1 x n row). ``camera_poses``: each camera's cam_from_world, ``p_cam = R p_world + T`` with ``R``
 3x3 and ``T`` (3): under the camera's own name for an absolute pose, or under
 ``<camera>_to_<master>`` relative to a master camera whose own pose is the identity (what
-multical calibrate writes, its first camera the master: that camera's ``R``, ``T`` are
-cam_<camera>_from_cam_<master>). A file without ``camera_poses`` (``multical intrinsic``'s) holds
+multical calibrate writes, its first camera the master; despite its name, the entry holds the
+camera's cam_from_master). A file without ``camera_poses`` (``multical intrinsic``'s) holds
 intrinsics only: its cameras are read at the identity pose. ``image_sets`` (the image files of
 each frame) is read past and not written.
 
@@ -106,7 +106,7 @@ def _camera(name: str, entry, at: str) -> Camera:
     if w != int(w) or h != int(h):
         raise ValueError(f"{at}: image_size {[w, h]}; expected whole pixels")
     if K[0, 1] != 0:
-        raise ValueError(f"{at}: skew K[0][1] = {K[0, 1]!r}; multical projects with "
+        raise ValueError(f"{at}: skew K[0][1] = {float(K[0, 1])!r}; multical projects with "
                          f"cv2.projectPoints, which reads none (expected 0)")
     if dist.size == 4:
         raise ValueError(f"{at}: dist has 4 coefficients, which multical writes for cv2.fisheye's "
@@ -135,8 +135,12 @@ def _pose(entry, at: str) -> np.ndarray:
         T = common.numbers(entry["T"], (3,), f"{at}: T")
     except KeyError as e:
         raise ValueError(f"{at}: missing {e.args[0]!r}") from None
+    with np.errstate(over="ignore"):
+        T = T * common.MM_PER_M
+    if not np.all(np.isfinite(T)):
+        raise ValueError(f"{at}: T = {entry['T']!r} m is too large to hold in mm")
     M = np.eye(4)
-    M[:3, :3], M[:3, 3] = R, T * common.MM_PER_M
+    M[:3, :3], M[:3, 3] = R, T
     return M
 
 
@@ -153,13 +157,15 @@ def _poses(entries, names: list[str], where: str) -> dict[str, np.ndarray]:
         if len(parts) != 2 or not set(parts) <= set(names):
             raise ValueError(f"{at}: expected a camera's name or <camera>{SEPARATOR}<camera> "
                              f"of the cameras {names}")
+        if parts[0] in relative:
+            raise ValueError(f"{at}: a second relative pose of camera {parts[0]!r}")
         relative[parts[0]] = (parts[1], _pose(entry, at), at)
     poses = dict(absolute)
     for name, (target, M, at) in relative.items():
         if name in absolute:
             raise ValueError(f"{at}: camera {name!r} has an absolute pose too")
         base = absolute.get(target)
-        if base is None or not np.allclose(base, np.eye(4), rtol=0, atol=1e-12):
+        if base is None or not np.allclose(base, np.eye(4), rtol=0, atol=1e-9):
             raise ValueError(f"{at}: relative to camera {target!r}, whose own pose is not the "
                              f"identity; expected the master camera at the identity (multical "
                              f"writes no other chain)")

@@ -609,8 +609,9 @@ def compare_markdown(report: dict) -> str:
     lines = [f"# Calibration tools against the truth: {report['rig']}", "",
              f"{report['cameras']} camera(s), {report['pattern']} board, `{report['environment']}` "
              f"imaging, {seeds} seed(s). Every tool calibrates the same detections of each seed's "
-             f"session as its users run it; its own file is read back and scored against the "
-             f"truth. Cells: mean [95 % Student-t interval over the seeds].", ""]
+             f"session as its users run it (a tool that reads only images, multical, detects "
+             f"the board itself in the same images); its own file is read back and scored "
+             f"against the truth. Cells: mean [95 % Student-t interval over the seeds].", ""]
 
     def rows(keys: tuple, extra=None) -> list[str]:
         figs = [f for f in COMPARE_FIGURES if f[0] in keys]

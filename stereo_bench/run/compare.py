@@ -73,7 +73,7 @@ def session_of(ds: Dataset, dets) -> tools.Session:
                            for c, p in enumerate(points)])
     return tools.Session([c.name for c in ds.cameras], [c.size for c in ds.cameras],
                          ds.object_points, points, np.stack([d.found for d in dets]),
-                         ds.pattern)
+                         ds.pattern, images=ds.root / "images")
 
 
 def _true_cam_from_board(ds: Dataset, c: int, frames) -> tuple[np.ndarray, np.ndarray]:

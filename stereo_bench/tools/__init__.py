@@ -23,6 +23,7 @@ anipose            aniposelib's CameraGroup.calibrate_rows (init, then its bundl
 caliscope          caliscope's intrinsics per camera, then its capture volume (scripting guide)
 mrcal              mrcal-calibrate-cameras, LENSMODEL_OPENCV8 (in mrcal's own environment)
 mrcal-splined      the same with its splined stereographic model, scored through mrcal
+multical           multical calibrate on the rendered images (its own ChArUco detection)
 =================  ================================================================================
 
 The tools that report an uncertainty return it in ``ToolResult.uncertainty``: per camera, the
@@ -54,6 +55,7 @@ MODULES = {
     "caliscope": "caliscope",
     "mrcal": "mrcal",
     "mrcal-splined": "mrcal",
+    "multical": "multical",
 }
 TOOLS = tuple(MODULES)
 
@@ -71,7 +73,10 @@ class Session:
     image_points (C, F, N, 2) px, OpenCV's pixel convention (the centre of the top-left pixel at
     (0, 0)), NaN where a point was not detected. found (C, F): the camera found the board.
     pattern: the board (core.patterns: its kind and geometry, e.g. a ChArUco board's
-    dictionary).
+    dictionary). images: the folder of the session's rendered images, one subfolder per camera
+    named as the camera, frame f in ``f"{f:06d}.png"`` (the dataset's layout), for a tool that
+    reads images and detects the board itself (multical); None for a session of detections
+    only.
     """
 
     names: list[str]
@@ -80,6 +85,7 @@ class Session:
     image_points: np.ndarray
     found: np.ndarray
     pattern: object
+    images: Path | None = None
 
     def full_views(self) -> np.ndarray:
         """(C, F): the views where every point of the board was detected."""

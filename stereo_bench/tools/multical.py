@@ -1,8 +1,8 @@
 """multical's calibration, as its users run it: ``multical calibrate`` (multical 0.4) on the
 session's rendered images, with OpenCV's standard model (fx, fy, cx, cy, k1 k2 p1 p2 k3: its
-default ``--distortion_model standard``) and every other setting its default (its intrinsic
-initialisation per camera, its pose initialisation, three rounds of bundle adjustment over the
-cameras and the board poses with its outlier rejection).
+default ``--distortion_model standard``) and its defaults but for the options below (its
+intrinsic initialisation per camera with cv2.calibrateCamera, its pose initialisation, three
+rounds of bundle adjustment over the cameras and the board poses with its outlier rejection).
 
 multical runs on Python 3.10 only (its command line dies at import on 3.11+, and it needs
 numpy < 1.24): it runs in its own environment (``make multical-env``), found at
@@ -14,10 +14,10 @@ SYNTHCAL_MULTICAL_PYTHON or .venv/multical.
   session of detections only is refused. Its detector is OpenCV 4.6's ChArUco corner
   interpolation (the OpenCV its package pins), which returns every corner +0.5 px right and down
   of the true one in OpenCV's pixel convention (OpenCV shifts the corners by 0.5 px around
-  cornerSubPix; later OpenCV releases drop the shift): multical's principal point comes out
-  about that much off, which is what its users get.
-* Its board: a ChArUco board only (its boards.yaml takes ``charuco`` and ``aprilgrid``, which the
-  suite does not render; a checkerboard is refused, by multical and here), written as
+  cornerSubPix; later OpenCV releases drop the shift; measured +0.49 px in x and y on a
+  rendered studio session): its principal points follow it, which is what its users get.
+* Its board: a ChArUco board only (its boards.yaml takes ``charuco`` and ``aprilgrid``, and the
+  suite renders no AprilGrid; a checkerboard is refused, by multical and here), written as
   ``boards.yaml`` with multical's fields: ``size`` [squares_x, squares_y], ``square_length`` and
   ``marker_length`` in metres (its documentation's unit: the camera translations come back in
   metres), ``aruco_dict`` (the dictionary's name without DICT_) and ``aruco_offset`` (the id of
@@ -29,13 +29,19 @@ SYNTHCAL_MULTICAL_PYTHON or .venv/multical.
   so each camera's image folder is linked into the tool's folder (nothing is written next to
   the dataset's images) and multical is pointed there: ``calibration.json`` (read back with
   io.multical), its log ``calibration.txt``, its workspace ``calibration.pkl`` and its
-  detections ``calibration.detections.pkl``; ``tool.log`` holds what it printed.
+  detections ``calibration.detections.pkl``; ``tool.log`` holds what it printed, and
+  ``.matplotlib`` the font cache of the matplotlib it imports.
 * Options given: ``--cameras`` in the session's order (the first is multical's master, the
-  reference camera 0), ``--limit_images`` the session's frame count (its default, 200, would
-  calibrate a random subset of a longer session while every other tool gets every view), and
-  ``--num_threads`` as its default (the CPUs but one) but at least 1. multical draws the views
-  of its intrinsic initialisation with numpy's unseeded generator (its ``--seed`` is not used),
-  so two runs on one session differ slightly.
+  reference camera 0); ``--limit_images`` the session's frame count (its default, 200, would
+  calibrate a random subset of a longer session while every other tool gets every view);
+  ``--limit_intrinsic`` without a value (None: every view initialises the intrinsics). Its
+  default, 50, sorts the views by their coverage plus noise drawn from numpy's unseeded
+  generator (its ``--seed`` is never used), so that runs on one session differed by up to
+  0.8 px in a principal point (8 runs on a studio session: its bundle adjustment ends where
+  its start leads it), and it fails outright ("Can't parse 'objectPoints'") when every view of
+  a camera holds the same number of corners, e.g. every view whole: multical then stacks the
+  views into one array. Without the limit multical is deterministic. ``--num_threads`` is its
+  default (the CPUs but one), at least 1.
 """
 
 from __future__ import annotations
@@ -43,6 +49,7 @@ from __future__ import annotations
 import os
 import re
 import subprocess
+import tempfile
 import time
 from pathlib import Path
 
@@ -69,20 +76,23 @@ def missing() -> str | None:
     exe = python()
     tool = exe.parent / "multical"
     if not exe.is_file() or not tool.is_file():
-        return (f"no multical environment at {exe.parent.parent} (`make multical-env`, which "
-                f"needs a python3.10; or set SYNTHCAL_MULTICAL_PYTHON)")
-    done = subprocess.run([str(exe), "-c", "import multical.app.multical, cv2"],
-                          capture_output=True, text=True, env=_env())
+        return (f"no multical environment: {tool} not found (`make multical-env`, which needs "
+                f"a python3.10; or set SYNTHCAL_MULTICAL_PYTHON to its python)")
+    with tempfile.TemporaryDirectory() as scratch:
+        done = subprocess.run([str(exe), "-c", "import multical.app.multical, cv2"],
+                              capture_output=True, text=True, env=_env(Path(scratch)))
     if done.returncode != 0:
         last = (done.stderr.strip().splitlines() or ["no message"])[-1]
         return f"{exe} cannot import multical ({last}; `make multical-env` installs it)"
     return None
 
 
-def _env() -> dict:
+def _env(matplotlib_dir: Path) -> dict:
     """The environment multical runs in: this one's, without a Python path that would put the
-    suite's packages (numpy 2) before multical's own."""
-    return {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+    suite's packages (numpy 2) before multical's own, and with matplotlib's font cache (multical
+    imports matplotlib) in ``matplotlib_dir``, not in the user's home."""
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+    return env | {"MPLCONFIGDIR": str(matplotlib_dir)}
 
 
 def boards_yaml(session: Session) -> str:
@@ -91,7 +101,8 @@ def boards_yaml(session: Session) -> str:
     p = session.pattern
     if p.kind != "charuco":
         raise ToolError(f"multical: its command line detects ChArUco and AprilGrid boards only "
-                        f"(boards.yaml _type_ charuco or aprilgrid), not a {p.kind} board")
+                        f"(boards.yaml _type_ charuco or aprilgrid); the session's board is "
+                        f"{p.kind}")
     if p.two_sided:
         raise ToolError("multical: a two-sided ChArUco board; multical would take its back for a "
                         "second board, posed from images that show both, and none shows both")
@@ -121,7 +132,7 @@ def _link_images(session: Session, out_dir: Path) -> None:
         raise ToolError("multical: its command line reads image folders and detects the board "
                         "itself; this session has detections only (no rendered images)")
     for name in session.names:
-        if not is_safe_name(name) or name in ("boards.yaml", "tool.log") + OUTPUTS:
+        if not is_safe_name(name) or name in ("boards.yaml", "tool.log", ".matplotlib") + OUTPUTS:
             raise ToolError(f"multical: camera {name!r} cannot name an image folder (letters, "
                             f"digits, _ - . expected)")
         folder = Path(session.images) / name
@@ -165,11 +176,12 @@ def calibrate(session: Session, out_dir: Path, name: str = "multical") -> ToolRe
            "--boards", str(boards), "--cameras", *session.names,
            "--limit_images", str(frames),
            # its default, cpu_count() - 1, is 0 on one CPU, where its process pool fails
-           "--num_threads", str(max(1, (os.cpu_count() or 2) - 1))]
+           "--num_threads", str(max(1, (os.cpu_count() or 2) - 1)),
+           "--limit_intrinsic"]  # no value: None, every view (module notes)
     t0 = time.perf_counter()
     try:
         done = subprocess.run(cmd, capture_output=True, text=True, timeout=TIMEOUT_S,
-                              cwd=out_dir, env=_env())
+                              cwd=out_dir, env=_env(out_dir / ".matplotlib"))
     except subprocess.TimeoutExpired:
         raise ToolError(f"multical: multical calibrate ran past {TIMEOUT_S} s") from None
     elapsed = time.perf_counter() - t0

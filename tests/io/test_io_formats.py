@@ -693,7 +693,7 @@ def test_mrcal_from_kalibr_converts_no_wide_lens(tmp_path):
 # ----------------------------------------------------------------------------------------------
 
 SUBSETS = {"opencv": 8, "colmap": 8, "kalibr": 4, "easymocap": 5, "anipose": 8, "caliscope": 8,
-           "mrcal": 8}
+           "mrcal": 8, "multical": 8}
 
 
 @pytest.mark.parametrize("fmt", list(formats.FORMATS))
@@ -742,7 +742,7 @@ def test_formats_refuse_what_they_cannot_hold(tmp_path, fmt, change, match):
 #: The lens models each format carries (the others refused); kalibr and opencv carry all four.
 CARRIED = {"colmap": "opencv and kannala_brandt", "easymocap": "opencv",
            "anipose": "opencv and kannala_brandt", "caliscope": "opencv and kannala_brandt",
-           "mrcal": "opencv"}
+           "mrcal": "opencv", "multical": "opencv"}
 
 
 @pytest.mark.parametrize("fmt, lens", [(fmt, lens) for fmt in CARRIED
