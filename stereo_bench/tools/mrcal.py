@@ -209,8 +209,9 @@ def splined_proxy(models, session: Session, out_dir: Path):
     centred) with the rig's poses turned likewise, and ``points`` the detections' rays through
     the spline seen through them: triangulating those is triangulating the spline's rays, with
     residuals weighed as the camera's pixels. ``projection``, per camera: how far the spline
-    projects each true ray of a grid of pixels (64 x 48, as evaluate.metrics) from its pixel, after R_c (``mean_px``,
-    ``max_px``) and as written (``direct_mean_px``, ``direct_max_px``), and R_c's angle."""
+    projects each true ray of a grid of pixels (64 x 48, as evaluate.metrics) from its pixel,
+    after R_c (``mean_px``, ``max_px``) and as written (``direct_mean_px``,
+    ``direct_max_px``), and R_c's angle."""
     from ..evaluate.metrics import grid_pixels
 
     def unit_rays(camera, uv):
