@@ -301,7 +301,7 @@ def _run_rigs(methods: list[str], run_trial: Trial) -> dict:
     for m in methods:
         if m == "gt":
             continue
-        estimate = run_trial.rigs[m]
+        estimate = run_trial.rigs.get(m, f"no rig of {m} in this trial")
         if isinstance(estimate, str):
             rigs[m] = f"calibration failed in run trial seed {run_trial.seed}: {estimate}"
             continue

@@ -172,9 +172,14 @@ def _pose_ready(trial: TrialPaths, fp: str, entries: dict) -> None:
     with the session's fingerprint and one rig file per tool that gave cameras."""
     write_json(trial.metrics, {"fingerprint": fp, "kind": "compare-tools"})
     for name, e in entries.items():
-        if "cameras_estimated" in e:
-            write_json(trial.rig(name), {"method": name, "cameras": e["cameras_estimated"],
-                                         "fingerprint": rig_fingerprint(fp, name)})
+        if "skipped" in e:
+            continue
+        # A tool that failed, or whose lens pose-eval cannot triangulate through, says why.
+        rig = ({"cameras": e["cameras_estimated"]} if e.get("cameras_estimated") else
+               {"error": e.get("error", "its lens has no form in the suite's camera model, "
+                                        "which pose-eval triangulates through")})
+        write_json(trial.rig(name), {"method": name, **rig,
+                                     "fingerprint": rig_fingerprint(fp, name)})
 
 
 def run_seed(cfg: RigConfig, out: Path, names: list[str], progress=None) -> dict:
