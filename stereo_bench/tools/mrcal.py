@@ -134,7 +134,10 @@ def calibrate(session: Session, out_dir: Path, name: str = "mrcal") -> ToolResul
     write_text(out_dir / "tool.log", done.stdout + done.stderr)  # what its users read
     models = [out_dir / f"camera-{c}.cameramodel" for c in range(len(session.names))]
     if done.returncode != 0 or not all(m.is_file() for m in models):
-        last = (done.stderr.strip().splitlines() or ["no message"])[-1]
+        lines = done.stderr.strip().splitlines() or ["no message"]
+        # Its own error line, not the matrix it prints after it.
+        last = next((ln.strip() for ln in lines if "ERROR" in ln or ln.startswith("Exception")),
+                    lines[-1])
         raise ToolError(f"mrcal: mrcal-calibrate-cameras failed ({last}; {out_dir}/tool.log)")
     said = done.stdout + done.stderr
     # Boards its outlier rejection emptied (mrcal warns that their poses are then free).
@@ -160,9 +163,9 @@ def _uncertainty(session: Session, models, cams, frames: list[int], out_dir: Pat
     centre = session.object_points.mean(0)
     distance = []
     for entry in first["cameras"]:
-        rt = np.array(list(entry["board_poses"].values()), float)
-        R = np.array([cv2.Rodrigues(r)[0] for r in rt[:, :3]])
-        distance.append(float(np.median(np.linalg.norm(R @ centre + rt[:, 3:], axis=-1))))
+        poses = _board_frame(entry["board_poses"], session.object_points[0]).values()
+        distance.append(float(np.median([np.linalg.norm(cv2.Rodrigues(r)[0] @ centre + t)
+                                         for r, t in poses])))
     request["distance"] = distance
     reply = _worker(request, out_dir)
     out = {}
@@ -170,11 +173,22 @@ def _uncertainty(session: Session, models, cams, frames: list[int], out_dir: Pat
         if entry.get("covariance") is None:
             out[cam.name] = {"error": f"mrcal: {entry.get('error')}"}
             continue
-        poses = {frames[int(i)]: (np.array(rt[:3]), np.array(rt[3:]))
-                 for i, rt in entry["board_poses"].items()}
+        poses = {frames[int(i)]: pose for i, pose in
+                 _board_frame(entry["board_poses"], session.object_points[0]).items()}
         out[cam.name] = {"projection": {"pixels": uv, "distance_mm": d,
                                         "covariance": np.array(entry["covariance"]),
                                         "board_poses": poses}}
+    return out
+
+
+def _board_frame(board_poses: dict, origin: np.ndarray) -> dict:
+    """mrcal's cam_from_board poses {index: rt} in the session's board frame: mrcal's board has
+    its first point at its origin, the session's at ``origin`` (a ChArUco board's first corner
+    is one square in), so p_mrcal = p_session - origin and t_session = t - R origin."""
+    out = {}
+    for i, rt in board_poses.items():
+        r, t = np.asarray(rt[:3], float), np.asarray(rt[3:], float)
+        out[i] = (r, t - cv2.Rodrigues(r)[0] @ origin)
     return out
 
 
