@@ -219,3 +219,18 @@ def test_pose_eval_reads_a_tool_that_failed_in_one_trial(exact, tmp_path):
                      Trial(7, ds.cameras, {"good": ds.cameras, "bad": "ToolError: bad: refused"}))
     assert "refused" in rigs["bad"] and "no rig of gone" in rigs["gone"]
     assert not isinstance(rigs["good"], str)
+
+
+def test_mrcal_board_poses_are_moved_to_the_session_board_frame():
+    """mrcal's board has its first point at its origin; a ChArUco board's first corner is one
+    square in: the same physical point must land at the same place through both poses."""
+    import cv2
+
+    from stereo_bench.tools.mrcal import _board_frame
+
+    rvec, tvec = np.array([0.1, -0.2, 0.3]), np.array([10.0, -5.0, 900.0])
+    origin = np.array([110.0, 110.0, 0.0])
+    (r, t), = _board_frame({"0": [*rvec, *tvec]}, origin).values()
+    R = cv2.Rodrigues(rvec)[0]
+    p = np.array([330.0, 220.0, 0.0])  # a corner in the session's frame
+    np.testing.assert_allclose(R @ p + t, R @ (p - origin) + tvec, atol=1e-12)
