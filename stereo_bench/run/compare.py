@@ -11,7 +11,9 @@ reference camera fixed, and after a similarity alignment). The tool's own time i
 Detections. Every tool gets the suite's detections, with each frame's corners numbered as the
 board is (a symmetric checkerboard found turned by 180 degrees is renumbered from the truth):
 which corner comes first is the detector's trap (TRAPS.md; ``stereo-bench RIG.yaml`` handles it
-without the truth), and here the calibrators are compared, not detectors.
+without the truth), and here the calibrators are compared, not detectors. A tool that reads
+only images (multical) gets the session's images (``Session.images``) and detects the board
+itself.
 
 Uncertainty. A tool that reports one (stereo_bench.tools' module notes) is checked against the
 true error of the very quantity it describes, per seed:
