@@ -136,8 +136,7 @@ def calibrate(session: Session, out_dir: Path, name: str = "mrcal") -> ToolResul
     if done.returncode != 0 or not all(m.is_file() for m in models):
         lines = done.stderr.strip().splitlines() or ["no message"]
         # Its own error line, not the matrix it prints after it.
-        last = next((ln.strip() for ln in lines if "ERROR" in ln or ln.startswith("Exception")),
-                    lines[-1])
+        last = next((ln.strip() for ln in lines if ln.startswith("Exception")), lines[-1])
         raise ToolError(f"mrcal: mrcal-calibrate-cameras failed ({last}; {out_dir}/tool.log)")
     said = done.stdout + done.stderr
     # Boards its outlier rejection emptied (mrcal warns that their poses are then free).
