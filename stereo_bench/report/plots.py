@@ -556,22 +556,29 @@ def plot_compare(report: dict, path: Path) -> Path:
     fig, axes = plt.subplots(1, len(panels), figsize=(3.3 * len(panels), 0.45 * len(table) + 1.6),
                              squeeze=False)
     names = list(table)
+    seeds = len(report["seeds"])
+    labels = [f"{n} ({table[n]['seeds']}/{seeds})" for n in names]
     for ax, (key, title) in zip(axes[0], panels):
         mean = np.array([np.nan if rows[key][n].get("mean") is None else rows[key][n]["mean"]
                          for n in names], float)
         lo = np.array([rows[key][n].get("ci_low") for n in names], dtype=float)
         hi = np.array([rows[key][n].get("ci_high") for n in names], dtype=float)
+        positive = mean[np.isfinite(mean) & (mean > 0)]
+        log = len(positive) > 1 and positive.max() / positive.min() >= 10
+        if log:  # an interval reaching below zero is drawn down to a tenth of its mean
+            lo = np.maximum(lo, 0.1 * mean)
         err = np.where(np.isfinite(lo), [mean - lo, hi - mean], 0.0)
         ax.barh(range(len(names)), mean, xerr=err, capsize=3, color="tab:blue", alpha=0.8)
-        ax.set_yticks(range(len(names)), names if ax is axes[0][0] else [""] * len(names),
+        ax.set_yticks(range(len(names)), labels if ax is axes[0][0] else [""] * len(names),
                       fontsize=8)
         ax.invert_yaxis()
-        positive = mean[np.isfinite(mean) & (mean > 0)]
-        if len(positive) > 1 and positive.max() / positive.min() >= 10:
+        if log:
             ax.set_xscale("log")
         ax.set_title(title, fontsize=9)
         ax.tick_params(axis="x", labelsize=7)
-    fig.suptitle(f"{report['rig']}: {len(report['seeds'])} seed(s), 95 % intervals", fontsize=9)
+    fig.suptitle(f"{report['rig']}, {report['pattern']} board, {report['environment']} imaging: "
+                 f"mean and 95 % interval over the seeds each tool calibrated (of {seeds})",
+                 fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
