@@ -533,7 +533,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "its users run it; each tool's own file is read back and "
                                    "scored as the suite scores its methods (projection "
                                    "difference, RMSE_cal, camera errors, pose-eval's paired "
-                                   "MPJPE cost, time), with 95 %% intervals over the seeds and "
+                                   "MPJPE cost, time), with 95 % intervals over the seeds and "
                                    "the share of seeds inside each tool's reported 1-sigma.")
     k.add_argument("rig", help="rig YAML file (a pair or a studio; any imaging preset)")
     k.add_argument("--tools", help="comma-separated tools (default: all; %s)"
@@ -559,7 +559,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "truth over several seeds, run through calibrate-images as "
                                    "your capture was; the real and the twin figures side by "
                                    "side and, where they agree, each method's true errors "
-                                   "with 95 %% intervals.")
+                                   "with 95 % intervals.")
     t.add_argument("capture", help="a calibrate-images output folder")
     t.add_argument("--method", default="opencv",
                    help="whose cameras and board poses the twin replays (default: %(default)s)")
