@@ -189,5 +189,9 @@ def read_back(cameras, out_dir: Path, fmt: str, time_s: float, log: dict,
     from .. import io
 
     out_dir = Path(out_dir)
-    (write or (lambda cams, out: io.export(cams, out, fmt)))(cameras, out_dir)
-    return ToolResult(io.load(out_dir, fmt), out_dir, fmt, time_s, log, uncertainty or {})
+    written = (write or (lambda cams, out: io.export(cams, out, fmt)))(cameras, out_dir)
+    written = [written] if isinstance(written, Path) else list(written)
+    # One file (one camera's, a rig's) is read as itself: a folder of one camera's file is no
+    # layout a reader knows.
+    source = written[0] if len(written) == 1 else out_dir
+    return ToolResult(io.load(source, fmt), out_dir, fmt, time_s, log, uncertainty or {})

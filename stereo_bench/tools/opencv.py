@@ -49,7 +49,7 @@ def _calibrate_camera(session: Session, c: int):
 def _stereo(session: Session, out_dir: Path) -> ToolResult:
     if len(session.names) != 2:
         raise ToolError(f"opencv-stereo: cv2.stereoCalibrate joins a pair; this rig has "
-                        f"{len(session.names)} cameras (opencv-multiview calibrates a studio)")
+                        f"{len(session.names)} camera(s) (opencv-multiview calibrates a studio)")
     t0 = time.perf_counter()
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # the same numbers on every machine (TRAPS.md)

@@ -157,7 +157,7 @@ def test_a_pair_tool_refuses_a_studio_by_name(exact, tmp_path):
     three = Session(s.names + ["third"], s.sizes * 2, s.object_points,
                     np.concatenate([s.image_points, s.image_points[:1]]),
                     np.concatenate([s.found, s.found[:1]]), s.pattern)
-    with pytest.raises(ToolError, match="opencv-stereo: .*3 cameras"):
+    with pytest.raises(ToolError, match=r"opencv-stereo: .*3 camera\(s\)"):
         module("opencv-stereo").calibrate(three, tmp_path, "opencv-stereo")
     with pytest.raises(ValueError, match="tool 'kalibr'"):
         parse_tools("opencv-stereo,kalibr")
@@ -234,3 +234,14 @@ def test_mrcal_board_poses_are_moved_to_the_session_board_frame():
     R = cv2.Rodrigues(rvec)[0]
     p = np.array([330.0, 220.0, 0.0])  # a corner in the session's frame
     np.testing.assert_allclose(R @ p + t, R @ (p - origin) + tvec, atol=1e-12)
+
+
+def test_one_camera_session_is_calibrated_and_read_back(exact, tmp_path):
+    """A one-camera session: the suite's own writes that camera's YAML and reads it back."""
+    ds, s = exact
+    mono = Session(s.names[:1], s.sizes[:1], s.object_points, s.image_points[:1], s.found[:1],
+                   s.pattern)
+    result = module("synthcal").calibrate(mono, tmp_path, "synthcal")
+    assert [c.name for c in result.cameras] == s.names[:1]
+    truth = ds.cameras[0].with_params(rvec=np.zeros(3), tvec=np.zeros(3))
+    assert abs(result.cameras[0].fx - truth.fx) < 1e-6
