@@ -91,8 +91,9 @@ def write(cameras: Sequence[Camera], out_dir) -> list[Path]:
             for i, cam in enumerate(cameras)]
 
 
-def read_camera(path) -> Camera:
-    """The camera of one .cameramodel file."""
+def read_model(path) -> dict:
+    """The dict of one .cameramodel file, whatever its lens model (bounded read, literal_eval;
+    a ValueError naming the file for anything else)."""
     path = common.existing(path, "mrcal .cameramodel file")
     try:
         model = ast.literal_eval(read_text(path, "mrcal .cameramodel file", MAX_FILE_BYTES))
@@ -105,6 +106,13 @@ def read_camera(path) -> Camera:
     if not isinstance(model, dict):
         raise ValueError(f"{path}: expected a dict with lensmodel, intrinsics, rt_cam_ref, "
                          f"imagersize")
+    return model
+
+
+def read_camera(path) -> Camera:
+    """The camera of one .cameramodel file."""
+    path = Path(path)
+    model = read_model(path)
     try:
         lens = model["lensmodel"]
         intrinsics = model["intrinsics"]

@@ -40,7 +40,6 @@ import math
 import subprocess
 import sys
 import time
-from concurrent.futures import as_completed
 from pathlib import Path
 
 import cv2
@@ -60,7 +59,7 @@ from .exchange import rebased, score_cameras
 from .pipeline import dataset_of, rig_fingerprint
 from ..report.markdown import COMPARE_FIGURES
 from .sweep_stats import t_interval
-from .workers import process_pool
+from .workers import in_processes
 
 #: e' Sigma^-1 e below this holds 68.27 % of a 2-D Gaussian: the 1-sigma region in 2-D.
 CHI2_2D_68 = float(stats.chi2.ppf(0.6827, 2))
@@ -184,7 +183,7 @@ def _pose_ready(trial: TrialPaths, fp: str, entries: dict) -> None:
                                      "fingerprint": rig_fingerprint(fp, name)})
 
 
-def run_seed(cfg: RigConfig, out: Path, names: list[str], progress=None) -> dict:
+def run_seed(cfg: RigConfig, out: Path, names: list[str]) -> dict:
     """Every tool on the session of seed ``cfg.seed`` (rendered and detected once, reused)."""
     trial = RunPaths(out).trial(cfg.seed)
     notes = Notes()
@@ -193,8 +192,6 @@ def run_seed(cfg: RigConfig, out: Path, names: list[str], progress=None) -> dict
     session = session_of(ds, dets)
     entries = {}
     for name in names:
-        if progress:
-            progress(f"seed {cfg.seed}: {name}")
         entries[name] = _run_tool(name, session, ds, trial)
         write_json(trial.tool_score(name), entries[name])
     _pose_ready(trial, fingerprint("compare-tools", det_fp, names), entries)
@@ -336,18 +333,11 @@ def _run_seed_job(args) -> dict:
 def _seeds(cfg: RigConfig, out: Path, names: list[str], seeds: int, workers: int,
            progress) -> list[dict]:
     """run_seed over the seeds, in ``workers`` spawned processes when more than one."""
-    configs = [cfg.model_copy(update={"seed": cfg.seed + i}) for i in range(seeds)]
-    if workers <= 1 or seeds == 1:
-        return [run_seed(c, out, names, progress) for c in configs]
-    results = [None] * seeds
-    with process_pool(workers) as pool:
-        futures = {pool.submit(_run_seed_job, (c.model_dump(mode="json"), str(out), names)): i
-                   for i, c in enumerate(configs)}
-        for fut in as_completed(futures):
-            results[futures[fut]] = fut.result()
-            if progress:
-                progress(f"seed {results[futures[fut]]['seed']}: done")
-    return results
+    jobs = [(cfg.model_copy(update={"seed": cfg.seed + i}).model_dump(mode="json"), str(out),
+             names) for i in range(seeds)]
+    return in_processes(_run_seed_job, jobs, workers,
+                        progress and (lambda done, total: progress(f"{done} of {total} seeds "
+                                                                   f"done")))
 
 
 def compare_tools(cfg: RigConfig, out: Path, names: list[str], seeds: int = 1,

@@ -12,7 +12,6 @@ torn stage is redone. ``run`` holds the run directory's lock: a second run into 
 from __future__ import annotations
 
 import time
-from concurrent.futures import as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,7 +34,7 @@ from ..multiview.bundle import (RigCalibration, aligned_rig_errors, calibrate_ri
                                 similarity_transform)
 from ..calibrate.pose import planar_pose
 from ..multiview.triangulate import triangulate
-from .workers import process_pool
+from .workers import in_processes
 
 
 #: Shells of distance from the volume's centre in which RMSE_cal is also reported, mm.
@@ -119,8 +118,9 @@ def triangulated_board(cameras: list[Camera], image_points: np.ndarray
                        ) -> tuple[np.ndarray, dict[str, int]]:
     """The board's points triangulated in every frame through a rig's cameras (cam_from_cam0),
     (F, N, 3) mm in the reference camera's frame (NaN where fewer than two cameras saw them), and
-    per camera the number of detections it could not use: those where its estimated distortion has no unique
-    ray (an overfitted model folds inside the image, TRAPS.md); they are masked, not fatal."""
+    per camera the number of detections it could not use: those where its estimated distortion
+    has no unique ray (an overfitted model folds inside the image, TRAPS.md); they are masked,
+    not fatal."""
     pts = image_points.copy()
     dropped = {}
     for c, cam in enumerate(cameras):
@@ -348,21 +348,7 @@ def run(cfg: RigConfig, out: Path, methods: list[str], trials: int = 1, workers:
     jobs = [(cfg.model_copy(update={"seed": cfg.seed + i}).model_dump(mode="json"), str(out),
              methods, first_dataset if i == 0 else None, with_rig) for i in range(trials)]
     with locked(out):
-        if workers <= 1 or trials == 1:
-            results = []
-            for i, job in enumerate(jobs):
-                results.append(_run_trial_job(job))
-                if progress:
-                    progress(i + 1, trials)
-            return results
-        results = [None] * trials
-        with process_pool(workers) as pool:
-            futures = {pool.submit(_run_trial_job, j): i for i, j in enumerate(jobs)}
-            for n, fut in enumerate(as_completed(futures), 1):
-                results[futures[fut]] = fut.result()
-                if progress:
-                    progress(n, trials)
-        return results
+        return in_processes(_run_trial_job, jobs, workers, progress)
 
 
 @dataclass(frozen=True, eq=False)

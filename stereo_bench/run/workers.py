@@ -14,7 +14,7 @@ import multiprocessing
 import os
 import signal
 import sys
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 
 _PR_SET_PDEATHSIG = 1
 
@@ -30,3 +30,24 @@ def process_pool(workers: int) -> ProcessPoolExecutor:
     """A pool of ``workers`` spawned processes that end when the process that made them does."""
     return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
                                initializer=_die_with_parent, initargs=(os.getpid(),))
+
+
+def in_processes(fn, jobs: list, workers: int, progress=None) -> list:
+    """``[fn(job) for job in jobs]``, in this process when ``workers`` <= 1 or there is one
+    job, else in a pool of ``workers`` spawned processes (``process_pool``; ``fn`` and the jobs
+    must pickle). Results in the jobs' order; ``progress(done, total)`` after each."""
+    if workers <= 1 or len(jobs) <= 1:
+        results = []
+        for job in jobs:
+            results.append(fn(job))
+            if progress:
+                progress(len(results), len(jobs))
+        return results
+    results = [None] * len(jobs)
+    with process_pool(workers) as pool:
+        futures = {pool.submit(fn, job): i for i, job in enumerate(jobs)}
+        for done, fut in enumerate(as_completed(futures), 1):
+            results[futures[fut]] = fut.result()
+            if progress:
+                progress(done, len(jobs))
+    return results

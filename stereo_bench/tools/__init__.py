@@ -131,6 +131,15 @@ class ToolResult:
     proxy: object = None
 
 
+def environment_python(variable: str, folder: str) -> Path:
+    """The Python of a tool's own environment: the environment variable ``variable``, else
+    .venv/``folder`` beside the project (``make mrcal-env``, ``make multical-env``)."""
+    import os
+
+    return Path(os.environ.get(variable) or
+                Path(__file__).resolve().parents[2] / ".venv" / folder / "bin" / "python")
+
+
 def module(name: str):
     """The module of tool ``name`` (ValueError naming the tools for an unknown one)."""
     if name not in MODULES:

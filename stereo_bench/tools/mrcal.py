@@ -28,7 +28,6 @@ OpenCV, which its seeding uses), found at SYNTHCAL_MRCAL_PYTHON or .venv/mrcal.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import time
 from pathlib import Path
@@ -38,8 +37,10 @@ import numpy as np
 
 from ..core.camera import Camera
 from ..core.files import write_text
-from ..io.mrcal import read_camera
-from . import Session, ToolError, ToolResult, probe_pixels
+from ..core.poses import matrix_to_rodrigues, rodrigues_to_matrix
+from ..io import common
+from ..io.mrcal import read_camera, read_model
+from . import Session, ToolError, ToolResult, environment_python, probe_pixels
 
 ABOUT = {"mrcal": "mrcal-calibrate-cameras, LENSMODEL_OPENCV8, mrcal's defaults (mrcal 2.5)",
          "mrcal-splined": "mrcal-calibrate-cameras, LENSMODEL_SPLINED_STEREOGRAPHIC (order 3, "
@@ -53,8 +54,7 @@ TIMEOUT_S = 1800
 
 
 def python() -> Path:
-    return Path(os.environ.get("SYNTHCAL_MRCAL_PYTHON") or
-                Path(__file__).resolve().parents[2] / ".venv" / "mrcal" / "bin" / "python")
+    return environment_python("SYNTHCAL_MRCAL_PYTHON", "mrcal")
 
 
 def missing() -> str | None:
@@ -163,7 +163,7 @@ def _uncertainty(session: Session, models, cams, frames: list[int], out_dir: Pat
     distance = []
     for entry in first["cameras"]:
         poses = _board_frame(entry["board_poses"], session.object_points[0]).values()
-        distance.append(float(np.median([np.linalg.norm(cv2.Rodrigues(r)[0] @ centre + t)
+        distance.append(float(np.median([np.linalg.norm(rodrigues_to_matrix(r) @ centre + t)
                                          for r, t in poses])))
     request["distance"] = distance
     reply = _worker(request, out_dir)
@@ -187,7 +187,7 @@ def _board_frame(board_poses: dict, origin: np.ndarray) -> dict:
     out = {}
     for i, rt in board_poses.items():
         r, t = np.asarray(rt[:3], float), np.asarray(rt[3:], float)
-        out[i] = (r, t - cv2.Rodrigues(r)[0] @ origin)
+        out[i] = (r, t - rodrigues_to_matrix(r) @ origin)
     return out
 
 
@@ -203,11 +203,10 @@ def _worker(request: dict, out_dir: Path) -> dict:
 
 
 def _rt_cam_ref(path: Path) -> np.ndarray:
-    """rt_cam_ref of a .cameramodel (mrcal's literal dict), whatever its lens."""
-    import ast
-
-    model = ast.literal_eval(path.read_text())
-    return np.asarray(model.get("rt_cam_ref", model.get("extrinsics")), dtype=float)
+    """rt_cam_ref of a .cameramodel, whatever its lens (io.mrcal reads only the OpenCV ones)."""
+    model = read_model(path)
+    return common.numbers(model.get("rt_cam_ref", model.get("extrinsics")), (6,),
+                          f"{path}: rt_cam_ref")
 
 
 def splined_proxy(models, session: Session, out_dir: Path):
@@ -243,14 +242,14 @@ def splined_proxy(models, session: Session, out_dir: Path):
         reply = _worker(request, out_dir)["cameras"]
         turns = [np.asarray(e["R"], dtype=float) for e in reply]
         rt = [_rt_cam_ref(m) for m in models]
-        R0 = turns[0] @ cv2.Rodrigues(rt[0][:3])[0]  # the true camera 0's from mrcal's ref
+        R0 = turns[0] @ rodrigues_to_matrix(rt[0][:3])  # the true camera 0's from mrcal's ref
         cams, points, projection = [], np.full(image_points.shape, np.nan), []
         for c, (t, e, Rc) in enumerate(zip(truth, reply, turns)):
-            Re = cv2.Rodrigues(rt[c][:3])[0]
+            Re = rodrigues_to_matrix(rt[c][:3])
             R = Rc @ Re @ R0.T  # true-gauge cam_c from true-gauge cam_0
             tvec = Rc @ rt[c][3:] - R @ (turns[0] @ rt[0][3:])
             cams.append(Camera(session.names[c], *session.sizes[c], t.fx, t.fx, 0.0, 0.0, 0.0,
-                               np.zeros(8), cv2.Rodrigues(R)[0].ravel(), tvec))
+                               np.zeros(8), matrix_to_rodrigues(R), tvec))
             rays = np.asarray(e["rays"], dtype=float).reshape(-1, 3) @ Rc.T
             ahead = rays[:, 2] > 0
             uv = np.full((len(rays), 2), np.nan)
@@ -261,7 +260,7 @@ def splined_proxy(models, session: Session, out_dir: Path):
                                "direct_mean_px": float(direct.mean()),
                                "direct_max_px": float(direct.max()),
                                "rotation_deg": float(np.degrees(np.linalg.norm(
-                                   cv2.Rodrigues(Rc)[0])))})
+                                   matrix_to_rodrigues(Rc))))})
         return cams, points, projection
 
     return proxy

@@ -57,7 +57,7 @@ import numpy as np
 
 from ..core.files import is_safe_name, write_text
 from ..io import multical as multical_file
-from . import Session, ToolError, ToolResult
+from . import Session, ToolError, ToolResult, environment_python
 
 ABOUT = ("multical calibrate (multical 0.4, its own ChArUco detection on the images), OpenCV's "
          "standard model, its defaults (in its own environment)")
@@ -68,8 +68,7 @@ OUTPUTS = ("calibration.json", "calibration.txt", "calibration.pkl",
 
 
 def python() -> Path:
-    return Path(os.environ.get("SYNTHCAL_MULTICAL_PYTHON") or
-                Path(__file__).resolve().parents[2] / ".venv" / "multical" / "bin" / "python")
+    return environment_python("SYNTHCAL_MULTICAL_PYTHON", "multical")
 
 
 def missing() -> str | None:

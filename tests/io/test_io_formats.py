@@ -5,7 +5,6 @@ its C++ formulas), projections of random 3D points agreeing to 1e-9 px, for ever
 format carries; the refusals; malformed files."""
 
 import ast
-import os
 import re
 import subprocess
 from pathlib import Path
@@ -610,8 +609,9 @@ def test_caliscope_older_sessions_and_intrinsics_only(tmp_path):
 def mrcal_python() -> str:
     """A Python that imports mrcal (it has no wheel for this Python): SYNTHCAL_MRCAL_PYTHON, or
     the environment .venv/mrcal (docs/formats.md says how to make it)."""
-    exe = os.environ.get("SYNTHCAL_MRCAL_PYTHON") or str(
-        Path(__file__).resolve().parents[2] / ".venv" / "mrcal" / "bin" / "python")
+    from stereo_bench.tools.mrcal import python
+
+    exe = str(python())
     if not Path(exe).is_file() or subprocess.run([exe, "-c", "import mrcal"],
                                                  capture_output=True).returncode:
         pytest.skip(f"no Python with mrcal at {exe} (set SYNTHCAL_MRCAL_PYTHON)")
