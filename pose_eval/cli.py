@@ -41,7 +41,7 @@ from .observe import DetectorModel, observe, read_openpose, scene_occlusion, wri
 from .reconstruct import triangulate_joints
 from .report import (COST, FLOOR, STAGES, aggregate, headline_stage, markdown, plot_mpjpe,
                      plot_skeleton)
-from .scene import in_true_world, make_scene, rig_axes, run_description
+from .scene import in_true_world, make_scene, rig_axes, run_config, run_description
 
 console = Console(stderr=True)
 NOISE_PX = 1.0
@@ -295,7 +295,7 @@ def evaluate_trial(truth, rigs: dict, keypoints, scene, robust: bool = False,
     return entries, joints
 
 
-def _run_rigs(methods: list[str], run_trial: Trial) -> dict:
+def run_rigs(methods: list[str], run_trial: Trial) -> dict:
     """{method: cameras in the true world, or why there are none} of one run trial, gt aside."""
     rigs = {}
     for m in methods:
@@ -402,7 +402,7 @@ def evaluate(args) -> tuple[dict, dict]:
         for k, v in keypoints.counts().items():
             detections[k] = detections.get(k, 0) + v
         under_two_views += keypoints.under_two_views().sum(axis=0)
-        rigs = {**_run_rigs(run_methods, run_trial),
+        rigs = {**run_rigs(run_methods, run_trial),
                 **{m: _placed(cams, truth) for m, (cams, _) in imported.items()}}
         entries, joints = evaluate_trial(truth, rigs, keypoints, scene,
                                          args.robust, args.fit_smpl, model,
@@ -450,10 +450,21 @@ def output_dir(args, rig: str) -> Path:
     return Path("out") / (rig if is_safe_name(rig) else "run") / "pose_eval"
 
 
+def _environment(args):
+    """The imaging the rendered body is photographed through: the run's or the rig file's
+    ``environment`` section (None for a capture or a calibration file: the render as it is)."""
+    if args.run:
+        cfg = run_config(args.run)
+        return cfg.environment if cfg is not None else None
+    return load_rig(args.rig).environment if args.rig else None
+
+
 def _rendered_keypoints(cameras, scene, model, out: Path, args):
     """(keypoints, the detector's error per joint) of BlazePose on Blender renders of ``scene``
-    through ``cameras``, written to OUT/body/ (images, OpenPose files, true joints)."""
-    from .photoreal import detect_keypoints, keypoint_errors, render_body
+    through ``cameras``, photographed through the run's imaging (its noise, lens blur,
+    vignetting and JPEG: photoreal.photograph_body), written to OUT/body/ (images, the
+    photographed images, OpenPose files, true joints)."""
+    from .photoreal import detect_keypoints, keypoint_errors, photograph_body, render_body
 
     body = out / "body"
     console.print(f"rendering {len(scene.joints)} frames x {len(cameras)} cameras with Blender "
@@ -462,7 +473,12 @@ def _rendered_keypoints(cameras, scene, model, out: Path, args):
                 samples=args.render_samples,
                 progress=lambda d, n: console.print(f"  frame {d}/{n}") if d % 10 == 0 or d == n
                 else None)
-    keypoints = detect_keypoints(cameras, body / "images", len(scene.joints))
+    images, environment = body / "images", _environment(args)
+    if environment is not None and environment.kind != "clean":
+        console.print(f"photographing them as the {environment.kind} cameras record them ...")
+        images = photograph_body(cameras, scene, images, body / "photographed", environment,
+                                 args.seed)
+    keypoints = detect_keypoints(cameras, images, len(scene.joints))
     write_openpose(body / "keypoints", cameras, keypoints)
     return keypoints, keypoint_errors(cameras, keypoints, scene.joints)
 

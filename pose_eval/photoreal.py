@@ -130,6 +130,37 @@ def render_body(cameras: list[Camera], scene: Scene, lbs_weights: np.ndarray, ou
     return out
 
 
+def photograph_body(cameras: list[Camera], scene: Scene, images: Path, out: Path, environment,
+                    seed: int) -> Path:
+    """The rendered frames ``images/<camera>/<frame:06d>.png`` (:func:`render_body`) as each
+    camera of a rig file's ``environment`` section records them, into ``out/<camera>/``: the
+    defocus of the body's depth (its median pelvis depth, the focus when the section leaves it
+    to the camera, as a camera operator focuses on the subject), the lens blur, vignetting, the
+    sensor's noise, ADC and JPEG (``imaging.photograph``); the noise of camera c, frame f is
+    drawn from ``frame_rng(seed, c, f)``, as a dataset's. Light and motion blur are the
+    render's own (a body frame is rendered at one instant). Returns ``out``."""
+    import cv2  # noqa: PLC0415 (kept beside its use, as in render_body)
+
+    from stereo_bench.render.imaging import photograph
+    from stereo_bench.scene.dataset import environment_settings, frame_rng
+
+    images, out = Path(images), Path(out)
+    for c, cam in enumerate(cameras):
+        depth = float(np.median(cam.world_to_cam(scene.joints[:, JOINT["pelvis"]])[:, 2]))
+        st = environment_settings(environment, depth)
+        radius = 0.5 * float(st.optics.circle_of_confusion_px(np.array(depth), cam.fx))
+        xy = PixelRays(cam).xy[1:-1, 1:-1]
+        for f in range(len(scene.joints)):
+            path = images / cam.name / f"{f:06d}.png"
+            image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+            if image is None:
+                raise FileNotFoundError(f"{path}: no rendered frame to photograph")
+            write_png(out / cam.name / f"{f:06d}.png",
+                      photograph(image, st.optics, st.sensor, st.white_level, xy,
+                                 frame_rng(seed, c, f), radius))
+    return out
+
+
 def smpl_keypoints(landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """BlazePose landmarks (..., 33, 4: x, y px from the image's edge, visibility, presence)
     -> SMPL joints (..., 24, 2) px with OpenCV's pixel centres (NaN where none) and their
@@ -147,10 +178,13 @@ def smpl_keypoints(landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return pixels, confidence
 
 
-def detect_keypoints(cameras: list[Camera], images: Path, frames: int) -> Keypoints:
+def detect_keypoints(cameras: list[Camera], images: Path, frames: int,
+                     landmarks: Path | None = None) -> Keypoints:
     """BlazePose on ``images/<camera>/<frame:06d>.png`` (as :func:`render_body` writes them),
-    mapped to SMPL's joints; the raw landmarks go to ``images/../blazepose_<camera>.npy``."""
+    mapped to SMPL's joints; the raw landmarks go to ``LANDMARKS/blazepose_<camera>.npy``
+    (default: beside ``images``)."""
     images = Path(images)
+    landmarks = Path(landmarks) if landmarks is not None else images.parent
     pixels, confidence = [], []
     with Worker("pose2d") as worker:
         for c in cameras:
@@ -158,7 +192,7 @@ def detect_keypoints(cameras: list[Camera], images: Path, frames: int) -> Keypoi
             missing = [p for p in paths if not p.exists()]
             if missing:
                 raise FileNotFoundError(f"{missing[0]}: no rendered frame to detect")
-            raw = images.parent / f"blazepose_{c.name}.npy"
+            raw = landmarks / f"blazepose_{c.name}.npy"
             worker.request("landmarks", images=[str(p) for p in paths], out=str(raw))
             px, conf = smpl_keypoints(np.load(raw))
             pixels.append(px)

@@ -241,13 +241,18 @@ def make_scene(cameras: list[Camera], motion: str, frames: int, fps: float = 30.
 # The estimates of a stereo-bench run
 # ----------------------------------------------------------------------------------------------
 
-def run_description(run_dir) -> tuple[str, str]:
-    """(rig name, environment kind) of a run, from its first trial's dataset/config.yaml."""
+def run_config(run_dir):
+    """The rig configuration of a run's first trial (its dataset/config.yaml), or None."""
     run = RunPaths(Path(run_dir))
     configs = [p for p in (run.trial(s).dataset.config for s in run.trial_seeds()) if p.is_file()]
-    if not configs:
+    return load_rig(configs[0]) if configs else None
+
+
+def run_description(run_dir) -> tuple[str, str]:
+    """(rig name, environment kind) of a run, from its first trial's dataset/config.yaml."""
+    cfg = run_config(run_dir)
+    if cfg is None:
         return Path(run_dir).name, "unknown"
-    cfg = load_rig(configs[0])
     return cfg.name, cfg.environment.kind
 
 

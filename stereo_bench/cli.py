@@ -207,6 +207,31 @@ def cmd_sweep(args) -> int:
     return 0
 
 
+def cmd_study(args) -> int:
+    from .run.study import load_study, run_study
+
+    if args.scheduler is not None and args.workers is not None:
+        raise ValueError("--workers applies to the embedded cluster; with --scheduler the "
+                         "cluster's workers run the configurations (start as many as wanted)")
+    study = load_study(args.study)
+    out = Path(args.out or Path("out") / study.sweep.grid.name)
+    console.print(f"{len(study.sweep.configurations)} configurations x {study.sweep.trials} "
+                  f"trial(s) ({study.sweep.trials_reason}); pose: "
+                  f"{', '.join(study.pose.detectors)} on {', '.join(study.pose.motions)}",
+                  markup=False, highlight=False)
+    result = run_study(study, out, args.workers or SWEEP_WORKERS, args.scheduler,
+                       lambda message: console.print(f"  {message}", markup=False,
+                                                     highlight=False))
+    console.print(Path(out / "study.md").read_text(), markup=False, soft_wrap=True,
+                  highlight=False)
+    if result["failed"]:
+        say("warning", "yellow", f"{len(result['failed'])} configuration(s) failed to "
+                                 f"calibrate: {', '.join(result['failed'])}")
+    console.print(f"wrote {out}/study.json, study.md, study.html, study_<studio>.png and the "
+                  f"calibrations in {out}/calibration", markup=False, highlight=False)
+    return 0
+
+
 def cmd_calibrate_images(args) -> int:
     from .run.capture import calibrate_capture, with_measured_diameter
     from .config.schema import CalibrationConfig
@@ -584,6 +609,26 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run on the Dask cluster of this running scheduler (tcp://HOST:PORT) "
                         "instead of an embedded one; its workers run one thread each")
     w.set_defaults(func=cmd_sweep)
+
+    st = sub.add_parser("study", help="what calibration costs in 3D pose: calibration "
+                                      "sessions and pose evaluation in one run, as a curve and "
+                                      "a threshold",
+                        description="Run a grid of calibration sessions (a sweep's grid file "
+                                    "with a pose section, see docs/study.md and "
+                                    "configs/studies/), then triangulate bodies' keypoints "
+                                    "(synthetic, a fitted BlazePose error model, or BlazePose "
+                                    "on Blender renders under the same imaging) through every "
+                                    "calibration; writes each calibration's pose cost against "
+                                    "its RMSE_cal and the calibration error at which the cost "
+                                    "reaches a share of the detector's floor.")
+    st.add_argument("study", help="study YAML file")
+    st.add_argument("--out", help="output directory (default: out/<study name>); with "
+                                  "--scheduler a folder every worker sees at the same path")
+    st.add_argument("--workers", type=int,
+                    help=f"processes of the embedded cluster (default: {SWEEP_WORKERS})")
+    st.add_argument("--scheduler", metavar="ADDRESS",
+                    help="run on the Dask cluster of this running scheduler (tcp://HOST:PORT)")
+    st.set_defaults(func=cmd_study)
 
     v = sub.add_parser("serve", help="the local web app: compose, preview, run, compare",
                        description="Start the web app (docs/web.md) on this machine: compose a "

@@ -49,7 +49,7 @@ from ..core.board_shape import BoardShape
 from ..core.camera import Camera, project_cam_with_jacobians
 from ..core.poses import rodrigues_to_matrix, view_toward
 from .imaging import (MAX_MOTION_SUBFRAMES, Light, Motion, Optics, Sensor, blinn_phong, defocus,
-                      expose, vignetting_gain)
+                      expose, vignetting_map)
 from .texels import (OUTSIDE, cells_touching, gaussian_noise, inverse_2x2, linear_weights,
                      plane_texels, sample_texels)
 
@@ -635,8 +635,6 @@ class AnalyticRenderer:
     def _vignetting(self) -> np.ndarray:
         """(H, W) float32 relative illumination of each pixel (built once per renderer)."""
         if self._vignette is None:
-            xy = self.rays.xy[1:-1, 1:-1]
-            corners = xy[[0, 0, -1, -1], [0, -1, 0, -1]].astype(np.float64)
-            self._vignette = vignetting_gain(xy, self.settings.optics.corner_illumination,
-                                             float(np.sum(corners ** 2, axis=1).max()))
+            self._vignette = vignetting_map(self.rays.xy[1:-1, 1:-1],
+                                            self.settings.optics.corner_illumination)
         return self._vignette

@@ -32,6 +32,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .texels import gaussian_noise
+
 MAX_MOTION_SUBFRAMES = 32
 _DEFOCUS_LEVELS = 12      # disc radii a frame's defocus is interpolated between
 _DEFOCUS_MIN_STEP_PX = 0.25
@@ -165,13 +167,44 @@ def vignetting_gain(xy: np.ndarray, corner_illumination: float, corner_r2: float
     return (cos2 ** (2 * a)).astype(np.float32)
 
 
+def vignetting_map(xy: np.ndarray, corner_illumination: float) -> np.ndarray:
+    """:func:`vignetting_gain` over a whole image's undistorted normalized coordinates ``xy``
+    (H, W, 2), with the exponent set by its farthest corner."""
+    corners = xy[[0, 0, -1, -1], [0, -1, 0, -1]].astype(np.float64)
+    return vignetting_gain(xy, corner_illumination, float(np.sum(corners ** 2, axis=1).max()))
+
+
+def photograph(image: np.ndarray, optics: Optics, sensor: Sensor, white_level: float,
+               xy: np.ndarray, rng: np.random.Generator | None, defocus_px: float = 0.0
+               ) -> np.ndarray:
+    """The 8-bit image a camera records of a scene whose ideal image is ``image`` (H, W) grey
+    or (H, W, 3) colour, float32 grey levels of a noise-free camera: a uniform defocus disc of
+    radius ``defocus_px`` (a scene at one depth), the lens blur, vignetting over the pixels'
+    normalized coordinates ``xy`` (H, W, 2), then the sensor (:func:`expose`, each colour
+    channel a sensor of its own). ``rng`` is required when ``sensor.noisy``."""
+    if sensor.noisy and rng is None:
+        raise ValueError("photograph: a noisy sensor needs an rng")
+    image = np.asarray(image, np.float32)
+    if defocus_px > 0.05:
+        image = cv2.filter2D(image, -1, disc_kernel(defocus_px), borderType=cv2.BORDER_REPLICATE)
+    if optics.blur_px > 0:
+        image = cv2.GaussianBlur(image, (0, 0), optics.blur_px, borderType=cv2.BORDER_REPLICATE)
+    if optics.corner_illumination < 1.0:
+        gain = vignetting_map(xy, optics.corner_illumination)
+        image = image * (gain[..., None] if image.ndim == 3 else gain)
+    noise = gaussian_noise(rng, image.shape) if sensor.noisy else None
+    return expose(image, sensor, white_level, noise)
+
+
 def expose(irradiance: np.ndarray, sensor: Sensor, white_level: float, noise: np.ndarray | None
            ) -> np.ndarray:
     """The 8-bit image (H, W) uint8 a sensor records from ``irradiance`` (H, W) float32, in grey
-    levels of a noise-free camera whose white print under full light is ``white_level``.
+    levels of a noise-free camera whose white print under full light is ``white_level``; a
+    colour image (H, W, 3) is recorded channel by channel.
 
-    ``noise``: standard normal (H, W) float32 (one draw serves shot, read and additive noise:
-    their sum is Gaussian with the summed variance), required when ``sensor.noisy``.
+    ``noise``: standard normal float32 of the image's shape (one draw serves shot, read and
+    additive noise: their sum is Gaussian with the summed variance), required when
+    ``sensor.noisy``.
     """
     s = sensor
     f32 = np.float32
@@ -198,7 +231,7 @@ def expose(irradiance: np.ndarray, sensor: Sensor, white_level: float, noise: np
     image = cv2.convertScaleAbs(np.maximum(dn, f32(0)))  # rounds and saturates to 0..255
     if s.jpeg_quality is not None:
         ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(s.jpeg_quality)])
-        image = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+        image = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
     return image
 
 

@@ -583,3 +583,57 @@ def plot_compare(report: dict, path: Path) -> Path:
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
+
+
+def plot_study(curves: list[dict], share: float, path: Path) -> Path:
+    """A study's answer for one studio (``run.study.cost_curve`` per detector): each
+    calibration's pose cost against its RMSE_cal (left) and its rig's reprojection error
+    (right), one colour per detector, one marker per method; a calibration (configuration and
+    method) is its mean over seeds with the 95 % Student-t interval of the cost; on the left the
+    fitted model and, dotted, the RMSE_cal where the cost reaches ``share`` of the floor."""
+    from scipy import stats
+
+    markers = "osD^v<>pX*h"
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
+    methods = list(dict.fromkeys(p["method"] for c in curves for p in c["points"]))
+    for ci, curve in enumerate(curves):
+        colour = f"C{ci}"
+        groups: dict = {}
+        for p in curve["points"]:
+            groups.setdefault((p["configuration"], p["method"]), []).append(p)
+        for (_, method), pts in groups.items():
+            cost = np.array([p["cost_mm"] for p in pts], float)
+            half = (stats.t.ppf(0.975, len(cost) - 1) * cost.std(ddof=1) / np.sqrt(len(cost))
+                    if len(cost) > 1 else 0.0)
+            for ax, key in zip(axes, ("rmse_cal_mm", "rig_rpe_px")):
+                x = np.array([p[key] if p[key] is not None else np.nan for p in pts], float)
+                if np.isfinite(x).any():
+                    ax.errorbar(np.nanmean(x), cost.mean(), yerr=half, color=colour, capsize=2,
+                                marker=markers[methods.index(method) % len(markers)], ms=5,
+                                lw=1, alpha=0.85)
+        if "k" in curve:
+            lo, hi = curve["rmse_cal_range_mm"]
+            r = np.geomspace(max(lo, 1e-3), hi, 100)
+            F = curve["floor_mm"]
+            axes[0].plot(r, np.sqrt(F ** 2 + (curve["k"] * r) ** 2) - F, color=colour, lw=1.2,
+                         label=f"{curve['detector']}: floor {F:.1f} mm")
+            if "threshold_rmse_cal_mm" in curve:
+                axes[0].axvline(curve["threshold_rmse_cal_mm"], color=colour, ls=":", lw=1.2)
+    for m in methods:
+        axes[1].plot([], [], ls="", color="0.3", marker=markers[methods.index(m) % len(markers)],
+                     label=m)
+    axes[0].set_xlabel("RMSE_cal (mm)")
+    axes[1].set_xlabel("rig reprojection error (px)")
+    for ax in axes:
+        ax.set_xscale("log")
+        ax.set_ylabel("pose cost: MPJPE minus the true cameras' (mm)")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8)
+    studio = curves[0]["studio"] if curves else ""
+    axes[0].set_title(f"{studio}: pose cost against calibration error; dotted: where it "
+                      f"reaches {share:.0%} of the floor", fontsize=9)
+    axes[1].set_title("the same against what the calibration reports", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -88,6 +88,7 @@ def trial_values(trial: dict) -> dict:
         rig = (trial.get("rig") or {}).get(m)
         if rig is not None:
             entry["rmse_cal_mm"] = _num(rig.get("rmse_cal_mm"))
+            entry["rig_rpe_px"] = _num(rig.get("rms_px"))
             if "error" in rig:
                 entry["rig_error"] = rig["error"]
         methods[m] = entry

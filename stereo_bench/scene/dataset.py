@@ -56,10 +56,15 @@ def frame_rng(seed: int, camera_index: int, frame: int) -> np.random.Generator:
 def render_settings(cfg: RigConfig, rig: Rig, cam: Camera) -> RenderSettings:
     """The renderer's settings for one camera of the rig (its focus: ``median_depth`` when the
     rig file leaves it to the camera)."""
-    env = cfg.environment
+    return environment_settings(cfg.environment, rig.median_depth(cam), rig.board)
+
+
+def environment_settings(env, depth_mm: float, board=None) -> RenderSettings:
+    """The imaging model of a rig file's ``environment`` section for a camera whose subject is
+    ``depth_mm`` away (its focus when the section leaves the focus to the camera)."""
     o = env.optics
     focus = o.focus_distance_mm if o.focus_distance_mm is not None else max(
-        rig.median_depth(cam), 1.01 * o.focal_length_mm)
+        depth_mm, 1.01 * o.focal_length_mm)
     return RenderSettings(
         supersampling=env.supersampling, background=env.background,
         black_level=env.black_level, white_level=env.white_level,
@@ -68,7 +73,7 @@ def render_settings(cfg: RigConfig, rig: Rig, cam: Camera) -> RenderSettings:
         motion=Motion(env.motion.exposure_ms, env.motion.speed_mm_s),
         optics=Optics(o.f_number, o.focal_length_mm, focus, o.blur_px, o.corner_illumination),
         sensor=Sensor(**env.sensor.model_dump()),
-        board=rig.board)
+        board=board)
 
 
 def dataset_fingerprint(cfg: RigConfig) -> str:

@@ -203,7 +203,7 @@ def test_pose_eval_reads_a_tool_that_failed_in_one_trial(exact, tmp_path):
     """A tool whose calibration failed in one seed leaves a rig entry saying why, and pose-eval
     counts that trial as the tool's failure instead of stopping (a trial without the tool's rig
     at all is read the same way)."""
-    from pose_eval.cli import _run_rigs
+    from pose_eval.cli import run_rigs
     from stereo_bench.io.rundir import RunPaths
     from stereo_bench.run.compare import _pose_ready
     from stereo_bench.run.pipeline import Trial
@@ -215,7 +215,7 @@ def test_pose_eval_reads_a_tool_that_failed_in_one_trial(exact, tmp_path):
                               "absent": {"skipped": "not installed"}})
     assert json.loads(trial.rig("bad").read_text())["error"] == "ToolError: bad: refused"
     assert not trial.rig("absent").exists()
-    rigs = _run_rigs(["gt", "good", "bad", "gone"],
+    rigs = run_rigs(["gt", "good", "bad", "gone"],
                      Trial(7, ds.cameras, {"good": ds.cameras, "bad": "ToolError: bad: refused"}))
     assert "refused" in rigs["bad"] and "no rig of gone" in rigs["gone"]
     assert not isinstance(rigs["good"], str)

@@ -4,7 +4,7 @@
 to a render worker (:mod:`.client`), which renders the pinhole view (:mod:`.lens`) of a matte
 plane carrying the board's texture with Cycles; the package then applies the camera's lens
 (one exact remap) and the rest of the imaging model that is not light: the Gaussian lens blur,
-vignetting and the sensor (``imaging.expose``, the same photon transfer, noise and ADC as the
+vignetting and the sensor (``imaging.photograph``, the same photon transfer, noise and ADC as the
 analytic backend). Defocus is Blender's own thin lens (the sensor is as wide as the lens and
 the pixel pitch make it).
 
@@ -26,8 +26,7 @@ import numpy as np
 from ...core.camera import Camera
 from ...core.files import write_png
 from ..analytic import PixelRays, RenderSettings
-from ..texels import gaussian_noise
-from ..imaging import expose, vignetting_gain
+from ..imaging import photograph
 from .client import Worker
 from .lens import PinholeView
 
@@ -98,15 +97,8 @@ class BlenderRenderer:
             raise RuntimeError(f"{self._frame}: the render worker wrote no 16-bit image")
         grey = pinhole.astype(np.float32) * np.float32(255.0 / _LEVELS)
         image = self.view.distort(grey, border=st.background)
-        if st.optics.blur_px > 0:
-            image = cv2.GaussianBlur(image, (0, 0), st.optics.blur_px,
-                                     borderType=cv2.BORDER_REPLICATE)
-        if st.optics.corner_illumination < 1.0:
-            corners = self._xy[[0, 0, -1, -1], [0, -1, 0, -1]].astype(np.float64)
-            image *= vignetting_gain(self._xy, st.optics.corner_illumination,
-                                     float(np.sum(corners ** 2, axis=1).max()))
-        noise = gaussian_noise(rng, image.shape) if st.sensor.noisy else None
-        return expose(image, st.sensor, st.white_level, noise)
+        # Blender's camera made the defocus; the rest of the camera is the suite's.
+        return photograph(image, st.optics, st.sensor, st.white_level, self._xy, rng)
 
     def close(self) -> None:
         """Remove the scratch frame (the texture stays: it is what was rendered)."""
