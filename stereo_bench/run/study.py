@@ -16,6 +16,7 @@ trials) with a ``pose`` section::
       noise_px: 1.0          # the gaussian detector's noise
       render_samples: 16     # Cycles samples of the rendered bodies (blazepose)
       detector_model: null   # a fitted detector's JSON (blazepose_fit); null: the shipped fit
+      rendered_studios: null # the rig files (stems) whose bodies blazepose renders; null: all
       floor_share: 0.1       # the threshold: where the cost reaches this share of the floor
       seed: 0                # of the keypoint noise and the rendered body's imaging
 
@@ -66,6 +67,7 @@ class PoseSection(BaseModel):
     noise_px: float = Field(1.0, ge=0, le=100)
     render_samples: int = Field(16, ge=1, le=4096)
     detector_model: str | None = None
+    rendered_studios: list[str] | None = None
     floor_share: float = Field(0.1, gt=0, le=10)
     seed: int = Field(0, ge=0, lt=2**63)
 
@@ -87,6 +89,14 @@ class PoseSection(BaseModel):
         if len(set(v)) != len(v):
             raise ValueError("a detector listed twice")
         return v
+
+
+def detectors_of(pose: dict, studio: str) -> list[str]:
+    """The detectors a studio's configurations are evaluated with: blazepose only where its
+    bodies are rendered (``rendered_studios``)."""
+    rendered = pose.get("rendered_studios")
+    return [d for d in pose["detectors"]
+            if d != "blazepose" or rendered is None or studio in rendered]
 
 
 class _PoseOnly(BaseModel):
@@ -120,6 +130,15 @@ def load_study(path) -> Study:
         pose = pose.model_copy(update={"detector_model": str(model)})
     grid_file = path  # the grid's rig paths are relative to the study file
     sweep = parse_grid(data, grid_file, _rig_reader(grid_file))
+    studios = {c.rig for c in sweep.configurations}
+    if pose.rendered_studios is not None:
+        unknown = sorted(set(pose.rendered_studios) - studios)
+        if unknown:
+            raise ConfigError(f"{path}: pose.rendered_studios: {unknown} are none of the "
+                              f"study's rig files {sorted(studios)}")
+        if "blazepose" not in pose.detectors:
+            raise ConfigError(f"{path}: pose.rendered_studios names the studios whose bodies "
+                              f"the blazepose detector renders; it is not in pose.detectors")
     return Study(sweep, pose, str(path))
 
 
@@ -184,13 +203,15 @@ def run_study(study: Study, out: Path, workers: int = 2, scheduler: str | None =
             from pose_eval.study import render_bodies
 
             for rig, cameras in _true_rigs(study.sweep).items():
+                if "blazepose" not in detectors_of(pose, rig):
+                    continue
                 render_bodies(rig, cameras, pose["motions"], pose["frames"],
                               pose["render_samples"], bodies, say)
         t_render = time.perf_counter() - t0 - t_cal
         rows = {r["name"]: r for r in sweep["configurations"]}
         jobs = {c.name: (c.config.model_dump(mode="json"), c.rig,
                          str(out / "calibration" / c.name),
-                         pose, str(bodies))
+                         {**pose, "detectors": detectors_of(pose, c.rig)}, str(bodies))
                 for c in study.sweep.configurations if "error" not in rows[c.name]}
         with _dask_client(workers, scheduler) as (client, _):
             futures = {client.submit(_pose_task, job, key=f"pose-{name}-{time.time_ns()}"): name
@@ -238,7 +259,7 @@ def assemble(study: Study, sweep: dict, costs: dict) -> dict:
         cost, floor = _per_seed(got.get("rows", []), "cost_mm"), _per_seed(got.get("rows", []),
                                                                             "floor_mm")
         entry["pose"] = {}
-        for d in pose.detectors:
+        for d in detectors_of(pose.model_dump(), entry["studio"]):
             floors = {s: v for (dd, _, s), v in floor.items() if dd == d}
             entry["pose"][d] = {
                 "floor_mm": t_interval(list(floors.values())),
@@ -255,7 +276,7 @@ def assemble(study: Study, sweep: dict, costs: dict) -> dict:
         configs.append(entry)
     curves = []
     for studio in dict.fromkeys(c["studio"] for c in configs):
-        for d in pose.detectors:
+        for d in detectors_of(pose.model_dump(), studio):
             points = [dict(p, configuration=c["name"]) for c in configs
                       if c["studio"] == studio and "pose" in c for p in c["pose"][d]["points"]]
             curves.append({"studio": studio, "detector": d, "points": points,
@@ -350,7 +371,7 @@ def study_markdown(result: dict) -> str:
                   "| configuration | floor (true cameras) | " + " | ".join(methods) + " |",
                   "|---|---|" + "---|" * len(methods)]
         for c in result["configurations"]:
-            if "pose" not in c:
+            if d not in c.get("pose", {}):
                 continue
             p = c["pose"][d]
             lines.append(f"| {c['name']} | {_ci(p['floor_mm'], 1)} | " + " | ".join(
