@@ -37,6 +37,7 @@ from .body import NUM_JOINTS, load_body_model
 from .fit import fit_smpl
 from .metrics import excess_mpjpe, pose_metrics
 from .motion import JOINT_NAMES, MOTIONS
+from .detector_fit import load_fit, observe_fitted
 from .observe import DetectorModel, observe, read_openpose, scene_occlusion, write_openpose
 from .reconstruct import triangulate_joints
 from .report import (COST, FLOOR, STAGES, aggregate, headline_stage, markdown, plot_mpjpe,
@@ -107,6 +108,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keypoints", metavar="DIR",
                    help="use a detector's OpenPose-style JSON files instead of synthetic "
                         "keypoints: DIR/<camera>/<frame:06d>_keypoints.json, SMPL's 24 joints")
+    p.add_argument("--detector-model", metavar="FILE",
+                   help="draw synthetic keypoints from a fitted detector's error (its joints, "
+                        "their offsets, noise in mm on the body, misses): 'blazepose' for the "
+                        "shipped fit of BlazePose on rendered bodies, or a JSON file written by "
+                        "scripts/fit_detector.py (docs/pose_eval.md)")
     p.add_argument("--rendered", action="store_true",
                    help="render the body with Blender from every true camera (OUT/body/) and "
                         "take the keypoints MediaPipe's BlazePose finds in those images, instead "
@@ -220,9 +226,11 @@ def check_options(args) -> None:
         if value is not None:
             need(math.isfinite(value) and 0 <= value < 1, option, "a rate in [0, 1)", value)
     need(1 <= args.render_samples <= 4096, "--render-samples", "1..4096", args.render_samples)
-    if args.rendered and args.keypoints:
-        raise ValueError("--rendered detects keypoints in rendered images; --keypoints reads "
-                         "them from files: give one")
+    sources = [o for o, v in (("--rendered", args.rendered), ("--keypoints", args.keypoints),
+                              ("--detector-model", args.detector_model)) if v]
+    if len(sources) > 1:
+        raise ValueError(f"{' and '.join(sources)} each say where the keypoints come from: "
+                         f"give one")
     if args.distance_mm is not None:
         need(math.isfinite(args.distance_mm) and 0 < args.distance_mm <= MAX_DISTANCE_MM,
              "--distance-mm", f"a distance in (0, {MAX_DISTANCE_MM:g}] mm", args.distance_mm)
@@ -346,9 +354,13 @@ def evaluate(args) -> tuple[dict, dict]:
     in the rig's (right, depth, up) axes, for the skeleton plot})."""
     check_options(args)
     noise = (args.noise_px, args.outlier_rate, args.miss_rate)
-    if (args.keypoints or args.rendered) and any(v is not None for v in noise):
-        raise ValueError("--noise-px, --outlier-rate and --miss-rate shape synthetic keypoints; "
-                         "they do not apply with --keypoints or --rendered")
+    if (args.keypoints or args.rendered or args.detector_model) and any(
+            v is not None for v in noise):
+        raise ValueError("--noise-px, --outlier-rate and --miss-rate shape the Gaussian "
+                         "synthetic keypoints; they do not apply with --keypoints, --rendered "
+                         "or --detector-model")
+    fitted = (load_fit(None if args.detector_model == "blazepose" else args.detector_model)
+              if args.detector_model else None)
     if args.rendered:
         from stereo_bench.render.blender.environment import require
 
@@ -396,6 +408,10 @@ def evaluate(args) -> tuple[dict, dict]:
             keypoints, detector_2d = rendered
         elif args.keypoints:
             keypoints = read_openpose(args.keypoints, truth, args.frames)
+        elif fitted is not None:
+            keypoints = observe_fitted(truth, scene, fitted, np.random.default_rng([args.seed, i]),
+                                       occluded if occluded is not None else
+                                       scene_occlusion(truth, scene))
         else:
             keypoints = observe(truth, scene, detector, np.random.default_rng([args.seed, i]),
                                 occluded)
@@ -429,6 +445,8 @@ def evaluate(args) -> tuple[dict, dict]:
         "keypoints": ("BlazePose (MediaPipe 0.10.21, full) on Blender renders, "
                       f"{args.render_samples} samples" if args.rendered else
                       f"OpenPose files from {args.keypoints}" if args.keypoints else
+                      f"synthetic, drawn from the fitted detector {fitted.name!r} "
+                      f"({args.detector_model})" if fitted is not None else
                       f"synthetic, noise {detector.noise_px} px, outliers "
                       f"{detector.outlier_rate:.0%}, misses {detector.miss_rate:.0%}, occlusion "
                       f"{'on' if detector.occlusion else 'off'}"),

@@ -54,6 +54,9 @@ from ..io.rundir import locked
 from .grid import Sweep, parse_grid
 from .sweep_stats import t_interval
 
+#: How far past the largest RMSE_cal measured a threshold is still said (as an extrapolation).
+MAX_EXTRAPOLATION = 3.0
+
 Detector = Literal["gaussian", "blazepose_fit", "blazepose"]
 DETECTOR_TITLES = {"gaussian": "synthetic, Gaussian", "blazepose_fit": "synthetic, BlazePose's "
                    "fitted error", "blazepose": "BlazePose on rendered bodies"}
@@ -314,10 +317,14 @@ def cost_curve(points: list[dict], share: float) -> dict:
            "residual_rms_mm": float(np.sqrt(np.mean(fit.fun ** 2))),
            "cost_range_mm": [float(C.min()), float(C.max())],
            "rmse_cal_range_mm": [float(R.min()), float(R.max())]}
-    if k <= 0:
-        out["reason"] = "the cost does not grow with RMSE_cal here: no threshold"
+    threshold = floor * math.sqrt((1 + share) ** 2 - 1) / k if k > 0 else math.inf
+    if threshold > MAX_EXTRAPOLATION * R.max():
+        out["reason"] = (f"the cost stays below {share:.0%} of the floor up to the largest "
+                         f"RMSE_cal measured ({R.max():.3g} mm): no threshold within reach")
         return out
-    out["threshold_rmse_cal_mm"] = floor * math.sqrt((1 + share) ** 2 - 1) / k
+    out["threshold_rmse_cal_mm"] = threshold
+    # Beyond the calibrations measured the model, not the data, says where the cost gets there.
+    out["extrapolated"] = bool(threshold > R.max() or threshold < R.min())
     return out
 
 
@@ -347,8 +354,10 @@ def study_markdown(result: dict) -> str:
             lines.append(
                 f"- **{c['studio']}, {title}**: a calibration costs {share:.0%} of the "
                 f"floor ({c['floor_mm']:.1f} mm, so {share * c['floor_mm']:.2f} mm of "
-                f"MPJPE) at RMSE_cal = **{c['threshold_rmse_cal_mm']:.2f} mm**; "
-                f"below it, calibration error hardly matters beside the detector's. "
+                f"MPJPE) at RMSE_cal = **{c['threshold_rmse_cal_mm']:.2f} mm**"
+                + (" (extrapolated: outside the calibrations measured)" if c["extrapolated"]
+                   else "") + "; below it, calibration error hardly matters beside the "
+                f"detector's. "
                 f"(cost = sqrt(F^2 + ({c['k']:.3f} RMSE_cal)^2) - F fitted to {c['n']} "
                 f"calibrations, RMSE_cal {c['rmse_cal_range_mm'][0]:.2f}-"
                 f"{c['rmse_cal_range_mm'][1]:.1f} mm; residual {c['residual_rms_mm']:.2f} mm "
