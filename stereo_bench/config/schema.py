@@ -432,10 +432,15 @@ class OpticsConfig(_Strict):
 
 class MotionConfig(_Strict):
     """Motion blur: the shutter is open ``exposure_ms`` while the board moves along its
-    trajectory at ``speed_mm_s`` (its centre; its rotation follows the trajectory's)."""
+    trajectory, its fastest outline corner at ``speed_mm_s`` (its rotation follows the
+    trajectory's). ``speed``: ``constant``, every frame at ``speed_mm_s``; ``trajectory``,
+    the frames are evenly spaced in time (frames of a video, as a studio's session is shot),
+    so each moves at ``speed_mm_s`` (the mean of its sequence) scaled by its own step: the
+    blur follows the hand, fastest where the trajectory moves most between frames."""
 
     exposure_ms: Float = Field(0.0, ge=0, le=1000)
     speed_mm_s: Float = Field(0.0, ge=0, le=1e5)
+    speed: Literal["constant", "trajectory"] = "constant"
 
 
 class SensorConfig(_Strict):

@@ -151,7 +151,8 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None) -> "Dataset":
             settings = render_settings(cfg, rig, cam)
             R, t = rig.cam_from_board(cam)
             renderer = make_renderer(cam, rig.pattern, settings, R, t)
-            omega, v = rig.board_velocity(cam, settings.motion.speed_mm_s)
+            omega, v = rig.board_velocity(cam, settings.motion.speed_mm_s,
+                                          cfg.environment.motion.speed == "trajectory")
             for f in range(len(rig.trajectory)):
                 image = renderer.render(R[f], t[f], frame_rng(cfg.seed, c, f), (omega[f], v[f]))
                 write_png(paths.image(cam.name, f), image)

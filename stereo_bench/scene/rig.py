@@ -415,33 +415,46 @@ class Rig:
         """The centre of the board's outline in its frame, (3,) mm (what it turns about)."""
         return np.append(self.pattern.outline_centre_mm, 0.0)
 
-    def board_velocity(self, cam: Camera, speed_mm_s: float) -> tuple[np.ndarray, np.ndarray]:
+    def board_velocity(self, cam: Camera, speed_mm_s: float, along_trajectory: bool = False
+                       ) -> tuple[np.ndarray, np.ndarray]:
         """Per frame, the board's motion in ``cam``'s frame: (omega (F, 3) rad/s about the
         board's centre, v (F, 3) mm/s of its centre), moving along the trajectory with its
         fastest outline corner at ``speed_mm_s`` (a hand turning a board moves its corners
         faster than its centre). The direction is the step to the next frame of the same
         sequence (the previous one at a sequence's end; a session's walk and each close-up
         are sequences); a frame alone in its sequence, or one the board does not move from,
-        is still."""
+        is still.
+
+        ``along_trajectory``: the frames are evenly spaced in time, as frames taken from a
+        video are, so the hand moves fastest where the steps are longest: ``speed_mm_s`` is
+        the sequence's mean speed and each frame moves at it times its step over the
+        sequence's mean step (the same for every frame of an evenly spaced trajectory)."""
         R, tv = self.trajectory.rotations, self.trajectory.tvecs
         centre = R @ self.board_centre + tv
         corners = np.einsum("fij,kj->fki", R[:, :, :2], self.pattern.outline_mm()) + tv[:, None]
         F = len(R)
-        omega, v = np.zeros((F, 3)), np.zeros((F, 3))
         seq = self.closeup_of
+        steps = np.full(F, -1, dtype=int)  # the frame each frame steps to or from
         for f in range(F):
             if f + 1 < F and seq[f + 1] == seq[f]:
-                a, b = f, f + 1
+                steps[f] = f + 1
             elif f > 0 and seq[f - 1] == seq[f]:
-                a, b = f - 1, f
-            else:
-                continue
-            dist = np.linalg.norm(corners[b] - corners[a], axis=1).max()
-            if dist < 1e-9:
-                continue
-            rotvec = matrix_to_rodrigues(R[b] @ R[a].T)
-            omega[f] = rotvec * speed_mm_s / dist
-            v[f] = (centre[b] - centre[a]) * speed_mm_s / dist
+                steps[f] = f - 1
+        a, b = np.arange(F), steps
+        dist = np.where(b >= 0, np.linalg.norm(corners[np.maximum(b, 0)] - corners, axis=2)
+                        .max(axis=1), 0.0)
+        speed = np.full(F, float(speed_mm_s))
+        if along_trajectory:
+            for s in np.unique(seq):
+                mine = (seq == s) & (dist > 1e-9)
+                if mine.any():
+                    speed[mine] *= dist[mine] / dist[mine].mean()
+        omega, v = np.zeros((F, 3)), np.zeros((F, 3))
+        for f in np.flatnonzero((b >= 0) & (dist > 1e-9)):
+            lo, hi = (a[f], b[f]) if b[f] > a[f] else (b[f], a[f])
+            rotvec = matrix_to_rodrigues(R[hi] @ R[lo].T)
+            omega[f] = rotvec * speed[f] / dist[f]
+            v[f] = (centre[hi] - centre[lo]) * speed[f] / dist[f]
         return omega @ cam.R.T, v @ cam.R.T
 
     def median_depth(self, cam: Camera) -> float:

@@ -3,6 +3,8 @@ presets, each against an independent computation: thin-lens optics, the photon t
 a box filter for linear motion, a disc filter for uniform defocus, and ground truth corners.
 """
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -356,6 +358,26 @@ def test_board_velocity_moves_the_fastest_corner_at_the_speed():
         assert np.allclose(centre + v[f] * T, R[f + 1] @ rig.board_centre + t[f + 1], atol=1e-9)
     # The last frame takes the step that led to it.
     assert np.allclose(omega[-1], omega[-1]) and np.linalg.norm(v[-1]) > 0
+
+
+def test_board_speed_along_a_session_follows_the_hand():
+    """speed: trajectory: a session's frames are evenly spaced in time, so each frame's
+    fastest corner moves at the given mean speed times its step over the mean step of its
+    sequence (the walk, each close-up): the same directions, speeds in the steps' ratios."""
+    from stereo_bench.scene.rig import Rig
+    rig = Rig.from_config(load_rig(Path(QUICKSTART).parent / "studios" / "h36m_rectangle.yaml"))
+    cam = rig.cameras[0]
+    omega_c, v_c = rig.board_velocity(cam, 150.0)
+    omega, v = rig.board_velocity(cam, 150.0, along_trajectory=True)
+    ratio = np.linalg.norm(v, axis=1) / np.linalg.norm(v_c, axis=1)  # this frame's / 150
+    assert np.allclose(omega, omega_c * ratio[:, None], atol=1e-12)
+    R, t = rig.trajectory.rotations, rig.trajectory.tvecs
+    corners = np.einsum("fij,kj->fki", R[:, :, :2], rig.pattern.outline_mm()) + t[:, None]
+    walk = np.flatnonzero(rig.closeup_of == -1)
+    step = np.linalg.norm(np.diff(corners[walk], axis=0), axis=2).max(axis=1)
+    assert np.allclose(ratio[walk[:-1]], step / np.append(step, step[-1]).mean(), rtol=1e-9)
+    assert ratio[walk].mean() == pytest.approx(1.0, rel=1e-9)
+    assert ratio[walk].max() / ratio[walk].min() > 1.5  # a session's hand does not keep pace
 
 
 def test_the_board_as_made_is_exact_between_its_grid_nodes(rays):
