@@ -293,12 +293,16 @@ def load_grid(path) -> Sweep:
     """The grid and its configurations (rig files crossed with every axis), all validated
     before anything runs; configuration names must be unique."""
     path = Path(path)
+    return parse_grid(load_yaml(path, "grid file"), path, rig_reader(path))
 
+
+def rig_reader(path: Path):
+    """:func:`parse_grid`'s reader of the rig files a grid file at ``path`` lists (relative
+    to it)."""
     def rig(rig_file: str) -> tuple[dict, dict]:
         base = load_rig(path.parent / rig_file).model_dump(mode="json")
         return base, load_yaml(path.parent / rig_file)  # read again: what the file itself writes
-
-    return parse_grid(load_yaml(path, "grid file"), path, rig)
+    return rig
 
 
 def parse_grid(data, path: Path, rig) -> Sweep:

@@ -51,7 +51,7 @@ from ..config.schema import ConfigError, describe
 from ..config.yaml_reader import load_yaml
 from ..core.files import write_json, write_text
 from ..io.rundir import locked
-from .grid import Sweep, parse_grid
+from .grid import Sweep, parse_grid, rig_reader
 from .sweep_stats import t_interval
 
 #: How far past the largest RMSE_cal measured a threshold is still said (as an extrapolation).
@@ -131,8 +131,7 @@ def load_study(path) -> Study:
         if not model.is_file():
             raise ConfigError(f"{path}: pose.detector_model: {model} is not a file")
         pose = pose.model_copy(update={"detector_model": str(model)})
-    grid_file = path  # the grid's rig paths are relative to the study file
-    sweep = parse_grid(data, grid_file, _rig_reader(grid_file))
+    sweep = parse_grid(data, path, rig_reader(path))  # rig files relative to the study file
     studios = {c.rig for c in sweep.configurations}
     if pose.rendered_studios is not None:
         unknown = sorted(set(pose.rendered_studios) - studios)
@@ -143,16 +142,6 @@ def load_study(path) -> Study:
             raise ConfigError(f"{path}: pose.rendered_studios names the studios whose bodies "
                               f"the blazepose detector renders; it is not in pose.detectors")
     return Study(sweep, pose, str(path))
-
-
-def _rig_reader(path: Path):
-    # load_grid's reader, for a grid that is part of another file.
-    from ..config.schema import load_rig
-
-    def rig(rig_file: str) -> tuple[dict, dict]:
-        return (load_rig(path.parent / rig_file).model_dump(mode="json"),
-                load_yaml(path.parent / rig_file))
-    return rig
 
 
 def _pose_task(job: tuple) -> dict:
