@@ -26,6 +26,7 @@ renders again).
 
 from __future__ import annotations
 
+import fcntl
 import json
 from pathlib import Path
 
@@ -72,11 +73,16 @@ def render_bodies(rig: str, cameras, motions: list[str], frames: int, samples: i
     for motion in motions:
         scene = make_scene(cameras, motion, frames, model=model)
         folder = body_folder(bodies, rig, motion, frames, samples)
-        if _rendered_matches(folder, cameras, scene):
-            continue
-        if progress:
-            progress(f"rendering {motion}: {frames} frames x {len(cameras)} cameras")
-        render_body(cameras, scene, weights, folder, samples=samples)
+        folder.mkdir(parents=True, exist_ok=True)
+        # Another study (or scripts/fit_detector.py) rendering the same body: wait for it and
+        # use its frames rather than render them twice.
+        with open(folder / ".rendering", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if _rendered_matches(folder, cameras, scene):
+                continue
+            if progress:
+                progress(f"rendering {motion}: {frames} frames x {len(cameras)} cameras")
+            render_body(cameras, scene, weights, folder, samples=samples)
 
 
 def _rendered_keypoints(cameras, scene, environment, folder: Path, out: Path, seed: int):
