@@ -101,9 +101,10 @@ def pose_costs(run_dir, environment, rig: str, settings: dict, bodies: Path, see
     configuration's folder): {"rows": [{seed, detector, motion, method, cost_mm, floor_mm}
     or {..., error}], "detector_2d": per motion the rendered detector's error}; ``settings``
     is the study's pose section (motions, frames, detectors, noise_px, render_samples,
-    detector_model)."""
+    detector_model) and the ``seeds`` of the trials to evaluate (None: every one there)."""
     run_dir = Path(run_dir)
-    trials = load_run(run_dir)
+    trials = [t for t in load_run(run_dir)
+              if settings.get("seeds") is None or t.seed in settings["seeds"]]
     if not trials:
         raise ValueError(f"{run_dir}: no complete trial to evaluate")
     methods = sorted({m for t in trials for m in t.rigs})

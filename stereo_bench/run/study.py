@@ -201,9 +201,13 @@ def run_study(study: Study, out: Path, workers: int = 2, scheduler: str | None =
                               pose["render_samples"], bodies, say)
         t_render = time.perf_counter() - t0 - t_cal
         rows = {r["name"]: r for r in sweep["configurations"]}
+        # The seeds the sweep ran: a configuration's folder may hold others from an earlier
+        # study with more trials, which its calibration figures do not include.
         jobs = {c.name: (c.config.model_dump(mode="json"), c.rig,
                          str(out / "calibration" / c.name),
-                         {**pose, "detectors": detectors_of(pose, c.rig)}, str(bodies))
+                         {**pose, "detectors": detectors_of(pose, c.rig),
+                          "seeds": [c.config.seed + i for i in range(study.sweep.trials)]},
+                         str(bodies))
                 for c in study.sweep.configurations if "error" not in rows[c.name]}
         with _dask_client(workers, scheduler) as (client, _):
             futures = {client.submit(_pose_task, job, key=f"pose-{name}-{time.time_ns()}"): name
