@@ -613,7 +613,8 @@ def plot_study(curves: list[dict], share: float, path: Path) -> Path:
                                 lw=1, alpha=0.85)
         if "k" in curve:
             lo, hi = curve["rmse_cal_range_mm"]
-            r = np.geomspace(max(lo, 1e-3), hi, 100)
+            reach = curve.get("threshold_rmse_cal_mm", lo)
+            r = np.geomspace(max(min(lo, reach) / 2, 1e-3), max(hi, reach) * 1.2, 200)
             F = curve["floor_mm"]
             axes[0].plot(r, np.sqrt(F ** 2 + (curve["k"] * r) ** 2) - F, color=colour, lw=1.2,
                          label=f"{curve['detector']}: floor {F:.1f} mm")
@@ -625,7 +626,14 @@ def plot_study(curves: list[dict], share: float, path: Path) -> Path:
     axes[0].set_xlabel("RMSE_cal (mm)")
     axes[1].set_xlabel("rig reprojection error (px)")
     for ax in axes:
-        ax.set_xscale("log")
+        xs = [x for line in ax.lines for x in np.atleast_1d(line.get_xdata()) if x > 0]
+        if _spans_decades(xs):
+            ax.set_xscale("log")
+        # Costs span decades and a near-perfect calibration's paired cost can dip below zero.
+        ax.set_yscale("symlog", linthresh=0.1)
+        ys = [y for line in ax.lines for y in np.atleast_1d(line.get_ydata())
+              if np.isfinite(y)]
+        ax.set_ylim(bottom=min(min(ys, default=0.0), 0.0))
         ax.set_ylabel("pose cost: MPJPE minus the true cameras' (mm)")
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8)
