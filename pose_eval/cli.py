@@ -482,7 +482,7 @@ def _rendered_keypoints(cameras, scene, model, out: Path, args):
     through ``cameras``, photographed through the run's imaging (its noise, lens blur,
     vignetting and JPEG: photoreal.photograph_body), written to OUT/body/ (images, the
     photographed images, OpenPose files, true joints)."""
-    from .photoreal import detect_keypoints, keypoint_errors, photograph_body, render_body
+    from .photoreal import keypoint_errors, recorded_keypoints, render_body
 
     body = out / "body"
     console.print(f"rendering {len(scene.joints)} frames x {len(cameras)} cameras with Blender "
@@ -491,12 +491,10 @@ def _rendered_keypoints(cameras, scene, model, out: Path, args):
                 samples=args.render_samples,
                 progress=lambda d, n: console.print(f"  frame {d}/{n}") if d % 10 == 0 or d == n
                 else None)
-    images, environment = body / "images", _environment(args)
+    environment = _environment(args)
     if environment is not None and environment.kind != "clean":
         console.print(f"photographing them as the {environment.kind} cameras record them ...")
-        images = photograph_body(cameras, scene, images, body / "photographed", environment,
-                                 args.seed)
-    keypoints = detect_keypoints(cameras, images, len(scene.joints))
+    keypoints = recorded_keypoints(cameras, scene, body / "images", environment, body, args.seed)
     write_openpose(body / "keypoints", cameras, keypoints)
     return keypoints, keypoint_errors(cameras, keypoints, scene.joints)
 

@@ -161,6 +161,19 @@ def photograph_body(cameras: list[Camera], scene: Scene, images: Path, out: Path
     return out
 
 
+def recorded_keypoints(cameras: list[Camera], scene: Scene, renders: Path, environment,
+                       out: Path, seed: int) -> Keypoints:
+    """BlazePose's keypoints of the rendered body ``renders/<camera>/<frame:06d>.png`` as the
+    cameras of ``environment`` record it (:func:`photograph_body` into ``out/photographed``;
+    a clean or absent environment: the renders as they are); its raw landmarks go to ``out``."""
+    images = Path(renders)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    if environment is not None and environment.kind != "clean":
+        images = photograph_body(cameras, scene, images, out / "photographed", environment, seed)
+    return detect_keypoints(cameras, images, len(scene.joints), out)
+
+
 def smpl_keypoints(landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """BlazePose landmarks (..., 33, 4: x, y px from the image's edge, visibility, presence)
     -> SMPL joints (..., 24, 2) px with OpenCV's pixel centres (NaN where none) and their

@@ -85,17 +85,6 @@ def render_bodies(rig: str, cameras, motions: list[str], frames: int, samples: i
             render_body(cameras, scene, weights, folder, samples=samples)
 
 
-def _rendered_keypoints(cameras, scene, environment, folder: Path, out: Path, seed: int):
-    """BlazePose's keypoints of the rendered body as this configuration's cameras record it."""
-    from .photoreal import detect_keypoints, photograph_body
-
-    images = folder / "images"
-    if environment.kind != "clean":
-        images = photograph_body(cameras, scene, images, out / "images", environment, seed)
-    out.mkdir(parents=True, exist_ok=True)
-    return detect_keypoints(cameras, images, len(scene.joints), out)
-
-
 def pose_costs(run_dir, environment, rig: str, settings: dict, bodies: Path, seed: int) -> dict:
     """Every trial's paired pose cost of every method of the run in ``run_dir`` (a study
     configuration's folder): {"rows": [{seed, detector, motion, method, cost_mm, floor_mm}
@@ -123,14 +112,14 @@ def pose_costs(run_dir, environment, rig: str, settings: dict, bodies: Path, see
         for detector in settings["detectors"]:
             shared = None
             if detector == RENDERED:
-                from .photoreal import keypoint_errors
+                from .photoreal import keypoint_errors, recorded_keypoints
 
                 folder = body_folder(bodies, rig, motion, settings["frames"],
                                      settings["render_samples"])
                 if not _rendered_matches(folder, truth, scene):
                     raise FileNotFoundError(f"{folder}: no rendered body of this studio")
-                shared = _rendered_keypoints(truth, scene, environment, folder,
-                                             run_dir / "body" / motion, seed)
+                shared = recorded_keypoints(truth, scene, folder / "images", environment,
+                                            run_dir / "body" / motion, seed)
                 detector_2d[motion] = keypoint_errors(truth, shared, scene.joints)
             for t in trials:
                 rng = np.random.default_rng([seed, t.seed, mi])
