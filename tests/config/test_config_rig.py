@@ -11,7 +11,7 @@ from stereo_bench.config.schema import load_rig, parse_rig
 from stereo_bench.scene.rig import Rig, spring_extent
 
 CONFIGS = sorted(p for p in Path(__file__).resolve().parents[2].joinpath("configs").rglob("*.yaml")
-                 if p.parent.name != "grids")
+                 if p.parent.name not in ("grids", "studies"))
 QUICK = Path(__file__).resolve().parents[2] / "configs" / "quickstart.yaml"
 
 

@@ -12,6 +12,8 @@ from stereo_bench.cli import main
 from stereo_bench.config.schema import ConfigError
 from stereo_bench.run.study import cost_curve, load_study
 
+from tests.quickstart import ROOT
+
 STUDIO = {
     "name": "studio3", "seed": 0,
     "studio": {"layout": "ring", "count": 3, "radius_mm": 3000.0, "height_mm": [1600.0],
@@ -65,6 +67,13 @@ def test_cost_curve_recovers_the_slope_and_the_threshold():
 def test_study_file_refusals_name_the_field(tmp_path, pose, message):
     with pytest.raises(ConfigError, match=message):
         load_study(_study(tmp_path, **pose))
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "configs" / "studies").glob("*.yaml")),
+                         ids=lambda p: p.stem)
+def test_shipped_studies_load(path):
+    study = load_study(path)
+    assert study.sweep.configurations and study.pose.motions
 
 
 def test_small_study_end_to_end(tmp_path, capsys):
