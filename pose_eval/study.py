@@ -88,7 +88,7 @@ def render_bodies(rig: str, cameras, motions: list[str], frames: int, samples: i
 def pose_costs(run_dir, environment, rig: str, settings: dict, bodies: Path, seed: int) -> dict:
     """Every trial's paired pose cost of every method of the run in ``run_dir`` (a study
     configuration's folder): {"rows": [{seed, detector, motion, method, cost_mm, floor_mm}
-    or {..., error}], "detector_2d": per motion the rendered detector's error}; ``settings``
+    or {..., error}; method "gt" carries the floor], "detector_2d": per motion the rendered detector's error}; ``settings``
     is the study's pose section (motions, frames, detectors, noise_px, render_samples,
     detector_model) and the ``seeds`` of the trials to evaluate (None: every one there)."""
     run_dir = Path(run_dir)
@@ -132,6 +132,10 @@ def pose_costs(run_dir, environment, rig: str, settings: dict, bodies: Path, see
                     keypoints = observe_fitted(truth, scene, fit, rng, occluded)
                 entries, _ = evaluate_trial(truth, run_rigs(["gt"] + methods, t), keypoints,
                                             scene, label=f"trial seed {t.seed}")
+                # The floor stands even where every calibration failed.
+                rows.append({"seed": t.seed, "detector": detector, "motion": motion,
+                             "method": "gt", "cost_mm": 0.0,
+                             "floor_mm": entries["gt"]["triangulated"]["mpjpe_mm"]})
                 for m in methods:
                     row = {"seed": t.seed, "detector": detector, "motion": motion, "method": m}
                     e = entries[m]

@@ -265,7 +265,7 @@ def assemble(study: Study, sweep: dict, costs: dict) -> dict:
                             "rmse_cal_mm": trials[s]["methods"].get(m, {}).get("rmse_cal_mm"),
                             "rig_rpe_px": trials[s]["methods"].get(m, {}).get("rig_rpe_px")}
                            for (dd, m, s), v in sorted(cost.items()) if dd == d
-                           and s in trials]}
+                           and m != "gt" and s in trials]}
         entry["detector_2d"] = got.get("detector_2d", {})
         entry["failures"] = sorted({f"{r['method']} (seed {r['seed']}): {r['error']}"
                                     for r in got.get("rows", []) if "error" in r})
@@ -323,7 +323,7 @@ def cost_curve(points: list[dict], share: float) -> dict:
 
 def _ci(s: dict, digits: int = 2) -> str:
     if not s or not s.get("n"):
-        return "–"
+        return "no value (Failures)"
     if s["n"] < 2 or not math.isfinite(s["ci_low"]):
         return f"{s['mean']:.{digits}f}"
     return f"{s['mean']:.{digits}f} [{s['ci_low']:.{digits}f}, {s['ci_high']:.{digits}f}]"
