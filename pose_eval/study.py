@@ -89,8 +89,9 @@ def pose_costs(run_dir, environment, rig: str, settings: dict, bodies: Path, see
     """Every trial's paired pose cost of every method of the run in ``run_dir`` (a study
     configuration's folder): {"rows": [{seed, detector, motion, method, cost_mm, floor_mm}
     or {..., error}; method "gt" carries the floor], "detector_2d": per motion the rendered
-    detector's error}; ``settings`` is the study's pose section (motions, frames, detectors, noise_px, render_samples,
-    detector_model) and the ``seeds`` of the trials to evaluate (None: every one there)."""
+    detector's error}; ``settings`` is the study's pose section (motions, frames, detectors,
+    noise_px, render_samples, detector_model) and the ``seeds`` of the trials to evaluate
+    (None: every one there)."""
     run_dir = Path(run_dir)
     trials = [t for t in load_run(run_dir)
               if settings.get("seeds") is None or t.seed in settings["seeds"]]
