@@ -93,9 +93,13 @@ class DetectorFit:
     @classmethod
     def from_dict(cls, data: dict, where: str = "detector model") -> DetectorFit:
         try:
+            if not isinstance(data, dict) or not isinstance(data.get("joints"), dict):
+                raise ValueError("expected a mapping with 'joints': {joint name: figures}")
             arrays = {k: np.full((NUM_JOINTS, 3 if k == "offset_mm" else 2), np.nan)
                       for k in cls._ARRAYS}
             for name, values in data["joints"].items():
+                if not isinstance(values, dict):
+                    raise ValueError(f"joints.{name}: expected a mapping of its figures")
                 if name not in JOINT:
                     raise ValueError(f"joints.{name}: not one of SMPL's joints")
                 for k in cls._ARRAYS:
@@ -117,6 +121,9 @@ class DetectorFit:
 def load_fit(path=None) -> DetectorFit:
     """A fitted detector from its JSON file (default: the shipped BlazePose fit)."""
     path = Path(path) if path is not None else SHIPPED
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no detector model here (expected the JSON file "
+                                f"scripts/fit_detector.py writes, or 'blazepose')")
     return DetectorFit.from_dict(read_json(path, "detector model"), str(path))
 
 

@@ -130,6 +130,12 @@ def load_study(path) -> Study:
         model = (path.parent / pose.detector_model).resolve()
         if not model.is_file():
             raise ConfigError(f"{path}: pose.detector_model: {model} is not a file")
+        from pose_eval.detector_fit import load_fit
+
+        try:
+            load_fit(model)  # refused now, not after hours of calibration
+        except ValueError as e:
+            raise ConfigError(f"{path}: pose.detector_model: {e}") from None
         pose = pose.model_copy(update={"detector_model": str(model)})
     sweep = parse_grid(data, path, rig_reader(path))  # rig files relative to the study file
     studios = {c.rig for c in sweep.configurations}

@@ -82,6 +82,12 @@ def test_json_round_trip_and_refusals(tmp_path):
     path.write_text(json.dumps(bad))
     with pytest.raises(ValueError, match=r"joints.tail: not one of SMPL's joints"):
         load_fit(path)
+    for bad in ({"joints": 3}, [1, 2], {"joints": {"pelvis": 1}}):
+        path.write_text(json.dumps(bad))
+        with pytest.raises(ValueError, match=r"model.json: (expected a mapping|joints.pelvis)"):
+            load_fit(path)
+    with pytest.raises(FileNotFoundError, match="no detector model here"):
+        load_fit(tmp_path / "none.json")
 
 
 def test_the_shipped_blazepose_fit_loads_and_reports_blazepose_joints():

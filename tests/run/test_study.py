@@ -63,8 +63,10 @@ def test_cost_curve_recovers_the_slope_and_the_threshold():
     ({"rendered_studios": ["studio3"]}, r"blazepose detector renders; it is not in"),
     ({"detector_model": "missing.json"}, r"pose.detector_model: .*missing.json is not a file"),
     ({"colour": "red"}, r"pose.colour: unknown key"),
+    ({"detector_model": "bad.json"}, r"pose.detector_model: .*bad.json: expected a mapping"),
 ])
 def test_study_file_refusals_name_the_field(tmp_path, pose, message):
+    (tmp_path / "bad.json").write_text("[1, 2]")
     with pytest.raises(ConfigError, match=message):
         load_study(_study(tmp_path, **pose))
 
