@@ -42,7 +42,6 @@ from .observe import DetectorModel, observe, scene_occlusion
 from .report import COST, FLOOR
 from .scene import make_scene
 
-DETECTORS = ("gaussian", "blazepose_fit", "blazepose")
 RENDERED = "blazepose"
 
 

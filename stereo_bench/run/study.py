@@ -12,7 +12,7 @@ trials) with a ``pose`` section::
     pose:
       motions: [walk_circle, arm_raise, squat]
       frames: 60
-      detectors: [gaussian, blazepose_fit, blazepose]   # pose_eval.study.DETECTORS
+      detectors: [gaussian, blazepose_fit, blazepose]   # Detector, below
       noise_px: 1.0          # the gaussian detector's noise
       render_samples: 16     # Cycles samples of the rendered bodies (blazepose)
       detector_model: null   # a fitted detector's JSON (blazepose_fit); null: the shipped fit
