@@ -177,13 +177,30 @@ def cmd_run(args) -> int:
 SWEEP_WORKERS = 2
 
 
+def _cluster_options(parser, what: str) -> None:
+    """--out, --workers and --scheduler of the commands that run on a Dask cluster."""
+    parser.add_argument("--out", help=f"output directory (default: out/<{what} name>); with "
+                                      f"--scheduler a folder every worker sees at the same path")
+    parser.add_argument("--workers", type=int,
+                        help=f"processes of the embedded cluster, configurations run in "
+                             f"parallel (default: {SWEEP_WORKERS})")
+    parser.add_argument("--scheduler", metavar="ADDRESS",
+                        help="run on the Dask cluster of this running scheduler "
+                             "(tcp://HOST:PORT) instead of an embedded one; its workers run one "
+                             "thread each")
+
+
+def _check_cluster_options(args) -> None:
+    if args.scheduler is not None and args.workers is not None:
+        raise ValueError("--workers applies to the embedded cluster; with --scheduler the "
+                         "cluster's workers run the configurations (start as many as wanted)")
+
+
 def cmd_sweep(args) -> int:
     from .run.grid import load_grid
     from .run.sweep import run_sweep
 
-    if args.scheduler is not None and args.workers is not None:
-        raise ValueError("--workers applies to the embedded cluster; with --scheduler the "
-                         "cluster's workers run the configurations (start as many as wanted)")
+    _check_cluster_options(args)
     sweep = load_grid(args.grid)
     grid, configs = sweep.grid, sweep.configurations
     out = Path(args.out or Path("out") / grid.name)
@@ -210,9 +227,7 @@ def cmd_sweep(args) -> int:
 def cmd_study(args) -> int:
     from .run.study import load_study, run_study
 
-    if args.scheduler is not None and args.workers is not None:
-        raise ValueError("--workers applies to the embedded cluster; with --scheduler the "
-                         "cluster's workers run the configurations (start as many as wanted)")
+    _check_cluster_options(args)
     study = load_study(args.study)
     out = Path(args.out or Path("out") / study.sweep.grid.name)
     console.print(f"{len(study.sweep.configurations)} configurations x {study.sweep.trials} "
@@ -600,14 +615,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "grid, curves with 95 % intervals over seeds and paired "
                                    "comparisons of methods and patterns.")
     w.add_argument("grid", help="grid YAML file")
-    w.add_argument("--out", help="output directory (default: out/<grid name>); with "
-                                 "--scheduler a folder every worker sees at the same path")
-    w.add_argument("--workers", type=int,
-                   help=f"processes of the embedded cluster, configurations run in parallel "
-                        f"(default: {SWEEP_WORKERS})")
-    w.add_argument("--scheduler", metavar="ADDRESS",
-                   help="run on the Dask cluster of this running scheduler (tcp://HOST:PORT) "
-                        "instead of an embedded one; its workers run one thread each")
+    _cluster_options(w, "grid")
     w.set_defaults(func=cmd_sweep)
 
     st = sub.add_parser("study", help="what calibration costs in 3D pose: calibration "
@@ -622,12 +630,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     "its RMSE_cal and the calibration error at which the cost "
                                     "reaches a share of the detector's floor.")
     st.add_argument("study", help="study YAML file")
-    st.add_argument("--out", help="output directory (default: out/<study name>); with "
-                                  "--scheduler a folder every worker sees at the same path")
-    st.add_argument("--workers", type=int,
-                    help=f"processes of the embedded cluster (default: {SWEEP_WORKERS})")
-    st.add_argument("--scheduler", metavar="ADDRESS",
-                    help="run on the Dask cluster of this running scheduler (tcp://HOST:PORT)")
+    _cluster_options(st, "study")
     st.set_defaults(func=cmd_study)
 
     v = sub.add_parser("serve", help="the local web app: compose, preview, run, compare",
