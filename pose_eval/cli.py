@@ -399,7 +399,9 @@ def evaluate(args) -> tuple[dict, dict]:
                 except ValueError as e:  # a rig with no place for a body: name its file
                     raise ValueError(f"{_source(args)}: {e}") from None
             placement += [str(w.message) for w in caught if str(w.message) not in placement]
-            occluded = scene_occlusion(truth, scene) if detector.occlusion else None
+            # The fitted detector's figures differ for hidden joints: it always needs them.
+            occluded = (scene_occlusion(truth, scene) if detector.occlusion or fitted is not None
+                        else None)
             rendered = (_rendered_keypoints(truth, scene, model, output_dir(args, rig), args)
                         if args.rendered else None)
             scenes[key] = scene, occluded, rendered
@@ -410,8 +412,7 @@ def evaluate(args) -> tuple[dict, dict]:
             keypoints = read_openpose(args.keypoints, truth, args.frames)
         elif fitted is not None:
             keypoints = observe_fitted(truth, scene, fitted, np.random.default_rng([args.seed, i]),
-                                       occluded if occluded is not None else
-                                       scene_occlusion(truth, scene))
+                                       occluded)
         else:
             keypoints = observe(truth, scene, detector, np.random.default_rng([args.seed, i]),
                                 occluded)

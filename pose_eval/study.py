@@ -84,13 +84,13 @@ def render_bodies(rig: str, cameras, motions: list[str], frames: int, samples: i
             render_body(cameras, scene, weights, folder, samples=samples)
 
 
-def pose_costs(run_dir, environment, rig: str, settings: dict, bodies: Path, seed: int) -> dict:
+def pose_costs(run_dir, environment, rig: str, settings: dict, bodies: Path) -> dict:
     """Every trial's paired pose cost of every method of the run in ``run_dir`` (a study
     configuration's folder): {"rows": [{seed, detector, motion, method, cost_mm, floor_mm}
     or {..., error}; method "gt" carries the floor], "detector_2d": per motion the rendered
     detector's error}; ``settings`` is the study's pose section (motions, frames, detectors,
-    noise_px, render_samples, detector_model) and the ``seeds`` of the trials to evaluate
-    (None: every one there)."""
+    noise_px, render_samples, detector_model, seed) and the ``seeds`` of the trials to
+    evaluate (None: every one there)."""
     run_dir = Path(run_dir)
     trials = [t for t in load_run(run_dir)
               if settings.get("seeds") is None or t.seed in settings["seeds"]]
@@ -100,6 +100,7 @@ def pose_costs(run_dir, environment, rig: str, settings: dict, bodies: Path, see
     model = load_body_model()
     fit = load_fit(settings.get("detector_model")) if "blazepose_fit" in settings["detectors"] \
         else None
+    seed = settings["seed"]
     rows, detector_2d = [], {}
     truth = trials[0].truth  # a study's trials share the studio; a run with others is refused
     for t in trials:

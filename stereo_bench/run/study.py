@@ -158,8 +158,7 @@ def _pose_task(job: tuple) -> dict:
     cfg = RigConfig.model_validate(cfg_json)
     t0 = time.perf_counter()
     try:
-        result = pose_costs(run_dir, cfg.environment, studio, settings, Path(bodies),
-                            settings["seed"])
+        result = pose_costs(run_dir, cfg.environment, studio, settings, Path(bodies))
     except Exception as e:  # noqa: BLE001 - one configuration must not end the study
         result = {"error": f"{type(e).__name__}: {e}", "rows": []}
     result["wall_time_s"] = time.perf_counter() - t0
