@@ -141,7 +141,7 @@ def photograph_body(cameras: list[Camera], scene: Scene, images: Path, out: Path
     render's own (a body frame is rendered at one instant). Returns ``out``."""
     import cv2  # noqa: PLC0415 (kept beside its use, as in render_body)
 
-    from stereo_bench.render.imaging import photograph
+    from stereo_bench.render.imaging import camera_vignette, photograph
     from stereo_bench.scene.dataset import environment_settings, frame_rng
 
     images, out = Path(images), Path(out)
@@ -149,14 +149,14 @@ def photograph_body(cameras: list[Camera], scene: Scene, images: Path, out: Path
         depth = float(np.median(cam.world_to_cam(scene.joints[:, JOINT["pelvis"]])[:, 2]))
         st = environment_settings(environment, depth)
         radius = 0.5 * float(st.optics.circle_of_confusion_px(np.array(depth), cam.fx))
-        xy = PixelRays(cam).xy[1:-1, 1:-1]
+        vignette = camera_vignette(PixelRays(cam).xy[1:-1, 1:-1], st.optics)
         for f in range(len(scene.joints)):
             path = images / cam.name / f"{f:06d}.png"
             image = cv2.imread(str(path), cv2.IMREAD_COLOR)
             if image is None:
                 raise FileNotFoundError(f"{path}: no rendered frame to photograph")
             write_png(out / cam.name / f"{f:06d}.png",
-                      photograph(image, st.optics, st.sensor, st.white_level, xy,
+                      photograph(image, st.optics, st.sensor, st.white_level, vignette,
                                  frame_rng(seed, c, f), radius))
     return out
 

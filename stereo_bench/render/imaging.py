@@ -174,14 +174,22 @@ def vignetting_map(xy: np.ndarray, corner_illumination: float) -> np.ndarray:
     return vignetting_gain(xy, corner_illumination, float(np.sum(corners ** 2, axis=1).max()))
 
 
+def camera_vignette(xy: np.ndarray, optics: Optics) -> np.ndarray | None:
+    """The relative illumination (H, W) of a camera whose pixels have the undistorted
+    normalized coordinates ``xy`` (H, W, 2) (:func:`vignetting_map`), or None when its lens has
+    no vignetting: computed once per camera, applied to every frame by :func:`photograph`."""
+    return vignetting_map(xy, optics.corner_illumination) \
+        if optics.corner_illumination < 1.0 else None
+
+
 def photograph(image: np.ndarray, optics: Optics, sensor: Sensor, white_level: float,
-               xy: np.ndarray, rng: np.random.Generator | None, defocus_px: float = 0.0
-               ) -> np.ndarray:
+               vignette: np.ndarray | None, rng: np.random.Generator | None,
+               defocus_px: float = 0.0) -> np.ndarray:
     """The 8-bit image a camera records of a scene whose ideal image is ``image`` (H, W) grey
     or (H, W, 3) colour, float32 grey levels of a noise-free camera: a uniform defocus disc of
-    radius ``defocus_px`` (a scene at one depth), the lens blur, vignetting over the pixels'
-    normalized coordinates ``xy`` (H, W, 2), then the sensor (:func:`expose`, each colour
-    channel a sensor of its own). ``rng`` is required when ``sensor.noisy``."""
+    radius ``defocus_px`` (a scene at one depth), the lens blur, the camera's ``vignette``
+    (:func:`camera_vignette`), then the sensor (:func:`expose`, each colour channel a sensor of
+    its own). ``rng`` is required when ``sensor.noisy``."""
     if sensor.noisy and rng is None:
         raise ValueError("photograph: a noisy sensor needs an rng")
     image = np.asarray(image, np.float32)
@@ -189,9 +197,8 @@ def photograph(image: np.ndarray, optics: Optics, sensor: Sensor, white_level: f
         image = cv2.filter2D(image, -1, disc_kernel(defocus_px), borderType=cv2.BORDER_REPLICATE)
     if optics.blur_px > 0:
         image = cv2.GaussianBlur(image, (0, 0), optics.blur_px, borderType=cv2.BORDER_REPLICATE)
-    if optics.corner_illumination < 1.0:
-        gain = vignetting_map(xy, optics.corner_illumination)
-        image = image * (gain[..., None] if image.ndim == 3 else gain)
+    if vignette is not None:
+        image = image * (vignette[..., None] if image.ndim == 3 else vignette)
     noise = gaussian_noise(rng, image.shape) if sensor.noisy else None
     return expose(image, sensor, white_level, noise)
 

@@ -17,7 +17,8 @@ from stereo_bench.config.schema import load_rig, parse_rig
 from stereo_bench.config.environments import PRESETS
 from stereo_bench.render import AnalyticRenderer, RenderSettings
 from stereo_bench.render.imaging import (Light, Motion, Optics, Sensor, blinn_phong, disc_kernel,
-                                         expose, photograph, vignetting_gain, vignetting_map)
+                                         camera_vignette, expose, photograph, vignetting_gain,
+                                         vignetting_map)
 
 
 def frontal(depth=400.0, shift=(0.0, 0.0)):
@@ -234,11 +235,10 @@ def test_photograph_records_each_colour_channel_as_a_sensor_of_its_own():
     curve of its own level, and a clean camera records the image as it is."""
     image = np.zeros((300, 300, 3), np.float32)
     image[...] = (40.0, 110.0, 200.0)
-    xy = np.zeros((300, 300, 2), np.float32)
-    assert np.array_equal(photograph(image, Optics(), Sensor(), 235.0, xy, None),
+    assert np.array_equal(photograph(image, Optics(), Sensor(), 235.0, None, None),
                           image.astype(np.uint8))
     sensor = Sensor(full_well_e=6000.0, exposure=0.2, read_noise_e=3.0)
-    out = photograph(image, Optics(), sensor, 235.0, xy, np.random.default_rng(0))
+    out = photograph(image, Optics(), sensor, 235.0, None, np.random.default_rng(0))
     e_per_dn = 0.2 * 6000.0 / 235.0
     for c, level in enumerate((40.0, 110.0, 200.0)):
         sigma = np.sqrt(level * e_per_dn + 9.0) / e_per_dn
@@ -246,10 +246,10 @@ def test_photograph_records_each_colour_channel_as_a_sensor_of_its_own():
                                                                 rel=0.03)
         assert out[..., c].mean() == pytest.approx(level, abs=0.1)
     with pytest.raises(ValueError, match="a noisy sensor needs an rng"):
-        photograph(image, Optics(), sensor, 235.0, xy, None)
+        photograph(image, Optics(), sensor, 235.0, None, None)
     # JPEG in colour: the decoded image is the colour round trip of the lossless one.
     ramp = np.dstack([np.tile(np.linspace(0, 250, 64, dtype=np.float32), (64, 1))] * 3)
-    jpeg = photograph(ramp, Optics(), Sensor(jpeg_quality=50), 235.0, xy[:64, :64], None)
+    jpeg = photograph(ramp, Optics(), Sensor(jpeg_quality=50), 235.0, None, None)
     ok, buf = cv2.imencode(".jpg", np.rint(ramp).astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, 50])
     assert np.array_equal(jpeg, cv2.imdecode(buf, cv2.IMREAD_COLOR))
 
@@ -259,13 +259,14 @@ def test_photograph_applies_the_renderers_vignetting_and_a_uniform_defocus():
     u = (np.arange(W) - 100) / 100.0
     xy = np.stack(np.meshgrid(u, u), -1).astype(np.float32)
     flat = np.full((W, W), 200.0, np.float32)
-    out = photograph(flat, Optics(corner_illumination=0.5), Sensor(), 235.0, xy, None)
+    optics = Optics(corner_illumination=0.5)
+    out = photograph(flat, optics, Sensor(), 235.0, camera_vignette(xy, optics), None)
     assert np.array_equal(out, np.rint(200.0 * vignetting_map(xy, 0.5)).astype(np.uint8))
     assert out[0, 0] == round(100.0) and out[100, 100] == 200
     # A point of light spreads over the disc of the defocus radius, its total kept.
     dot = np.zeros((W, W), np.float32)
     dot[100, 100] = 255.0 * 50
-    blurred = photograph(dot, Optics(), Sensor(), 235.0, xy, None, defocus_px=4.0).astype(float)
+    blurred = photograph(dot, Optics(), Sensor(), 235.0, None, None, defocus_px=4.0).astype(float)
     assert blurred.sum() == pytest.approx(255.0 * 50, rel=0.03)
     rows, cols = np.nonzero(blurred)
     assert max(np.abs(rows - 100).max(), np.abs(cols - 100).max()) == 4

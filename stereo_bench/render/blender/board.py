@@ -26,7 +26,7 @@ import numpy as np
 from ...core.camera import Camera
 from ...core.files import write_png
 from ..analytic import PixelRays, RenderSettings
-from ..imaging import photograph
+from ..imaging import camera_vignette, photograph
 from .client import Worker
 from .lens import PinholeView
 
@@ -59,7 +59,7 @@ class BlenderRenderer:
         self.camera, self.pattern, self.settings, self.worker = camera, pattern, settings, worker
         rays = rays if rays is not None else PixelRays(camera)
         self.view = PinholeView.of(camera, rays)
-        self._xy = rays.xy[1:-1, 1:-1]
+        self._vignette = camera_vignette(rays.xy[1:-1, 1:-1], settings.optics)
         self._frame = Path(workdir) / f"{camera.name}_pinhole.png"
         texture_path = Path(workdir) / f"{camera.name}_texture.png"
         st = settings
@@ -98,7 +98,7 @@ class BlenderRenderer:
         grey = pinhole.astype(np.float32) * np.float32(255.0 / _LEVELS)
         image = self.view.distort(grey, border=st.background)
         # Blender's camera made the defocus; the rest of the camera is the suite's.
-        return photograph(image, st.optics, st.sensor, st.white_level, self._xy, rng)
+        return photograph(image, st.optics, st.sensor, st.white_level, self._vignette, rng)
 
     def close(self) -> None:
         """Remove the scratch frame (the texture stays: it is what was rendered)."""
