@@ -122,13 +122,17 @@ class _Variation:
     phase: float = 0.0
 
 
-def _clock(frames: int, fps: float, seed: int | None):
-    """Frame times (T,) s and the variation drawn from the seed (none without a seed)."""
+def _clock(frames: int, fps: float, seed: int | None, start_s: float = 0.0):
+    """Frame times (T,) s from ``start_s`` and the variation drawn from the seed (none without a
+    seed). A camera whose clock runs ``start_s`` ahead sees the motion at these times: every
+    motion is a closed-form function of time, so a shifted camera's truth is exact."""
     if int(frames) != frames or frames < 1:
         raise ValueError(f"frames must be a positive integer, got {frames!r}")
     if not fps > 0:
         raise ValueError(f"fps must be positive, got {fps!r}")
-    t = np.arange(int(frames)) / float(fps)
+    if not np.isfinite(start_s):
+        raise ValueError(f"start_s must be finite, got {start_s!r}")
+    t = start_s + np.arange(int(frames)) / float(fps)
     if seed is None:
         return t, _Variation()
     rng = np.random.default_rng(seed)
@@ -154,13 +158,14 @@ def _grounded(name, rotations, root_xz, lift, fps, skeleton: Skeleton | None) ->
 
 
 def walk_circle(frames: int, fps: float = 30.0, seed: int | None = None,
-                skeleton: Skeleton | None = None, radius: float = 1.5) -> Motion:
+                skeleton: Skeleton | None = None, start_s: float = 0.0,
+                radius: float = 1.5) -> Motion:
     """Walking counter-clockwise (seen from +y) around a circle of `radius` m about the origin.
 
     1.1 m/s with 0.9 strides/s; legs, arms and pelvis swing in the sagittal plane, the arms
     against the legs.
     """
-    t, v = _clock(frames, fps, seed)
+    t, v = _clock(frames, fps, seed, start_s)
     speed, a = 1.1 * v.speed, v.amp
     gait = 2 * np.pi * (0.9 * v.speed * t + v.phase)
     path = speed * t / radius + 2 * np.pi * v.phase
@@ -184,9 +189,9 @@ def walk_circle(frames: int, fps: float = 30.0, seed: int | None = None,
 
 
 def arm_raise(frames: int, fps: float = 30.0, seed: int | None = None,
-              skeleton: Skeleton | None = None) -> Motion:
+              skeleton: Skeleton | None = None, start_s: float = 0.0) -> Motion:
     """Standing still, both arms rise sideways from the hips to overhead and back every 4 s."""
-    t, v = _clock(frames, fps, seed)
+    t, v = _clock(frames, fps, seed, start_s)
     s = (1 - np.cos(2 * np.pi * (v.speed * t / 4.0 + v.phase))) / 2
     rot = _standing(t)
     lift_angle = np.minimum(np.deg2rad(150 * v.amp) * s, np.deg2rad(160))
@@ -197,13 +202,13 @@ def arm_raise(frames: int, fps: float = 30.0, seed: int | None = None,
 
 
 def squat(frames: int, fps: float = 30.0, seed: int | None = None,
-          skeleton: Skeleton | None = None) -> Motion:
+          skeleton: Skeleton | None = None, start_s: float = 0.0) -> Motion:
     """Squats every 3 s with the feet flat, torso leaning forward and the arms reaching forward.
 
     All sagittal angles are about x, so they add: pelvis tilt + hip + knee + ankle = 0 keeps
     the feet flat; the thigh reaches -70 deg and the shin +30 deg at full depth.
     """
-    t, v = _clock(frames, fps, seed)
+    t, v = _clock(frames, fps, seed, start_s)
     s = np.minimum(v.amp * (1 - np.cos(2 * np.pi * (v.speed * t / 3.0 + v.phase))) / 2, 1.0)
     tilt, hip, knee, ankle = (np.deg2rad(d) * s for d in (25, -95, 100, -30))
     rot = _standing(t)
@@ -217,9 +222,9 @@ def squat(frames: int, fps: float = 30.0, seed: int | None = None,
 
 
 def jumping_jacks(frames: int, fps: float = 30.0, seed: int | None = None,
-                  skeleton: Skeleton | None = None) -> Motion:
+                  skeleton: Skeleton | None = None, start_s: float = 0.0) -> Motion:
     """Jumping jacks every 1.2 s: arms sideways to overhead and legs apart, hopping 7 cm."""
-    t, v = _clock(frames, fps, seed)
+    t, v = _clock(frames, fps, seed, start_s)
     cycle = 2 * np.pi * (v.speed * t / 1.2 + v.phase)
     s = (1 - np.cos(cycle)) / 2
     rot = _standing(t)
@@ -234,9 +239,9 @@ def jumping_jacks(frames: int, fps: float = 30.0, seed: int | None = None,
 
 
 def turn_in_place(frames: int, fps: float = 30.0, seed: int | None = None,
-                  skeleton: Skeleton | None = None) -> Motion:
+                  skeleton: Skeleton | None = None, start_s: float = 0.0) -> Motion:
     """Turning on the spot at 90 deg/s, stepping once per leg per second."""
-    t, v = _clock(frames, fps, seed)
+    t, v = _clock(frames, fps, seed, start_s)
     step = 2 * np.pi * (v.speed * t + v.phase)
     rot = _standing(t)
     for side, phase in (("left", 0.0), ("right", np.pi)):
@@ -253,15 +258,16 @@ MOTIONS = {f.__name__: f for f in (walk_circle, arm_raise, squat, jumping_jacks,
 
 
 def make_motion(name: str, frames: int, fps: float = 30.0, seed: int | None = None,
-                skeleton: Skeleton | None = None) -> Motion:
+                skeleton: Skeleton | None = None, start_s: float = 0.0, **shape) -> Motion:
     """The procedural motion `name` (a key of MOTIONS).
 
     seed: None gives the canonical motion; an int or numpy Generator varies amplitude (+-15 %),
-    speed (+-10 %) and phase, reproducibly.
+    speed (+-10 %) and phase, reproducibly. start_s: the time of the first frame (a camera
+    whose clock is offset). shape: the motion's own parameters (walk_circle's radius).
     """
     if name not in MOTIONS:
         raise ValueError(f"unknown motion {name!r}; expected one of {', '.join(MOTIONS)}")
-    return MOTIONS[name](frames, fps=fps, seed=seed, skeleton=skeleton)
+    return MOTIONS[name](frames, fps=fps, seed=seed, skeleton=skeleton, start_s=start_s, **shape)
 
 
 # --- recorded motions ----------------------------------------------------------------------------

@@ -237,6 +237,62 @@ def make_scene(cameras: list[Camera], motion: str, frames: int, fps: float = 30.
                       stature_mm=float(to_mm(np.ptp(rest[:, 1]))))
 
 
+@dataclass(frozen=True)
+class Person:
+    """One person of a scene: a procedural motion (pose_eval.motion.MOTIONS), its seed (None:
+    the canonical motion) and the motion's own parameters (walk_circle's ``radius`` in m)."""
+
+    motion: str
+    seed: int | None = None
+    shape: tuple[tuple[str, float], ...] = ()
+
+
+def seen_by_clocks(cameras: list[Camera], people: list[Person], frames: int, fps: float = 30.0,
+                   model=None, offsets_ms=None) -> list[list[Scene]]:
+    """[camera][person] scenes: what each camera sees of each person when its clock runs
+    ``offsets_ms[c]`` ms ahead (frame f of camera c is exposed at f / fps + offset).
+
+    The first person is placed as :func:`make_scene` places a body (the rig's anchor), and every
+    other person in the same frame: procedural motions share SMPL's origin (walk_circle's
+    centre), so people on circles of different radii walk around one another. Each shifted
+    view poses the motion at its own times (exact: motions are closed-form in time) and puts it
+    in the world by the same placement, so the cameras disagree only about when.
+    """
+    model = model if model is not None else load_body_model()
+    skeleton = rest_skeleton(model)
+    offsets = np.zeros(len(cameras)) if offsets_ms is None else np.asarray(offsets_ms, float)
+    if offsets.shape != (len(cameras),) or not np.all(np.isfinite(offsets)):
+        raise ValueError(f"offsets_ms: expected {len(cameras)} finite offsets, got {offsets_ms!r}")
+    rest = forward(model, np.zeros((1, 69)), np.zeros((1, 3)))[1][0]
+    stature = float(to_mm(np.ptp(rest[:, 1])))
+    placed = None
+    views = [[None] * len(people) for _ in cameras]
+    for p, person in enumerate(people):
+        posed = {}
+        for c, offset in enumerate(offsets):
+            if offset not in posed:
+                m = make_motion(person.motion, frames, fps=fps, seed=person.seed,
+                                skeleton=skeleton, start_s=offset / 1000.0, **dict(person.shape))
+                posed[offset] = forward(model, m.body_pose, m.global_orient, m.transl, m.betas)
+            joints, vertices = posed[offset]
+            if placed is None:  # the first person's unshifted motion fixes the placement
+                joints0, vertices0 = posed.get(0.0) or forward(
+                    model, *_unshifted(person, frames, fps, skeleton))
+                placed = place_body(cameras, joints0, vertices0, model.faces,
+                                    stature_mm=stature)
+            R, t = placed.world_from_body
+            views[c][p] = Scene(to_mm(joints) @ R.T + t, to_mm(vertices) @ R.T + t,
+                                placed.faces, placed.world_from_body, placed.distance_mm,
+                                placed.surrounded)
+    return views
+
+
+def _unshifted(person: Person, frames: int, fps: float, skeleton):
+    m = make_motion(person.motion, frames, fps=fps, seed=person.seed, skeleton=skeleton,
+                    **dict(person.shape))
+    return m.body_pose, m.global_orient, m.transl, m.betas
+
+
 # ----------------------------------------------------------------------------------------------
 # The estimates of a stereo-bench run
 # ----------------------------------------------------------------------------------------------

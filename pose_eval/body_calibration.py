@@ -1,0 +1,540 @@
+"""Calibration from the body: a studio's extrinsics and its cameras' clock offsets from the 2D
+keypoints of people moving in it, the intrinsics being known.
+
+The steps, each a standard tool of structure from motion applied to body joints (a joint of a
+person in a frame is one 3D point, seen by every camera that detected it):
+
+1. **Pairs.** For every pair of cameras and every whole-frame shift of one's clock against the
+   other's (up to ``max_offset_frames``), the essential matrix of the joints both saw at
+   matched times, by Nister's five-point solver in RANSAC (OpenCV's ``findEssentialMat``;
+   Nister, "An efficient solution to the five-point relative pose problem", PAMI 2004). The
+   shift with the most inliers is the pair's; unsynchronised cameras see a moving body
+   inconsistently, so a wrong shift loses inliers.
+2. **Join.** A maximum spanning tree over the pairs, weighted by their inliers, sets each
+   camera's whole-frame offset from camera 0 (summed along the tree) and the order in which
+   cameras join: the root pair's relative pose (``recoverPose``), then each next camera by PnP
+   in RANSAC on the joints triangulated so far, which carries the scale of the first pair to
+   every camera (relative poses alone would leave one scale per edge).
+3. **Bundle adjustment** of the cameras' poses, their clock offsets to a fraction of a frame
+   and every joint's 3D track, with a robust loss (soft L1, its scale from the residuals' MAD)
+   on the reprojection error weighted by the keypoint's confidence. A camera whose clock is
+   offset sees a joint between two of camera 0's frames: the track is interpolated there by a
+   Catmull-Rom spline through four frames, whose derivative gives the offset's Jacobian
+   (Sibley et al. use the same device for rolling shutters; here it is per camera, not per
+   row). The analytic Jacobian is sparse and exact (tested against finite differences).
+4. **The vertical** from the floor: the feet rest on it while they stand. Each foot joint's
+   slowest third of frames are its stances; the plane through them (least squares, then
+   without points beyond 3 robust deviations) is parallel to the floor, and its normal points
+   up on the side of the heads. A crowd that never walks (feet at a few spots) gives no plane:
+   the normal is then the mean direction from the feet to the heads, and ``vertical`` says so.
+5. **Scale** from one known quantity: one baseline between two cameras, or a person's height
+   (the head joint's median height above the stance plane while walking, times the body
+   model's ratio of stature to that height at rest).
+
+The result is the studio in a floor frame: z up, x along camera 0's view projected on the
+floor, the origin on the stance plane below the people's mean position; lengths in mm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
+
+from stereo_bench.core.camera import Camera, project_with_jacobians
+from stereo_bench.core.poses import matrix_to_rodrigues, rodrigues_to_matrix
+from stereo_bench.multiview.triangulate import triangulate_dlt
+
+MIN_PAIR_INLIERS = 30  # fewer joints agreeing on a pair's geometry do not join it
+MAX_PAIR_POINTS = 4000  # a pair's RANSAC sees at most this many joints (drawn reproducibly)
+STANCE_SHARE = 1 / 3  # the slowest share of a foot joint's frames taken as its stances
+FLAT_SPREAD = 0.15  # stance points spread less than this (2nd over 1st extent) give no plane
+
+
+@dataclass(frozen=True)
+class Scale:
+    """The known quantity that makes the studio metric: ``baseline_mm`` between cameras
+    ``cameras`` (two names), or a person's ``height_mm``."""
+
+    baseline_mm: float | None = None
+    cameras: tuple[str, str] | None = None
+    height_mm: float | None = None
+
+    def __post_init__(self):
+        given = (self.baseline_mm is not None) + (self.height_mm is not None)
+        if given != 1:
+            raise ValueError("scale: give one known quantity, a baseline or a height")
+        value = self.baseline_mm if self.baseline_mm is not None else self.height_mm
+        if not (np.isfinite(value) and value > 0):
+            raise ValueError(f"scale: expected a positive length in mm, got {value!r}")
+        if self.baseline_mm is not None and (self.cameras is None or len(self.cameras) != 2
+                                             or self.cameras[0] == self.cameras[1]):
+            raise ValueError("scale: a baseline needs the names of two different cameras")
+
+
+@dataclass(frozen=True)
+class Skeleton:
+    """Which tracks are what: the joint indices of feet and heads (per person, flattened over
+    people), and the body's stature over its head joint's height above its stance at rest."""
+
+    feet: tuple[int, ...]
+    heads: tuple[int, ...]
+    stature_per_head: float
+
+
+@dataclass(frozen=True, eq=False)
+class BodyCalibration:
+    """cameras: cam_from_world in the floor frame (mm); offsets_frames (C,): each camera's clock
+    ahead of camera 0's, in frames; points (T, N, 3) the joints' tracks at camera 0's frames
+    (NaN where not reconstructed); rms_px: the reprojection error's RMS over the inliers;
+    vertical: 'floor' or 'body axis'; pairs: per joint pair, its shift and inliers; order: the
+    cameras in the order they joined."""
+
+    cameras: list[Camera]
+    offsets_frames: np.ndarray
+    points: np.ndarray
+    rms_px: float
+    vertical: str
+    pairs: list[dict] = field(default_factory=list)
+    order: list[str] = field(default_factory=list)
+
+
+# ----------------------------------------------------------------------------------------------
+# 1. Pairs
+# ----------------------------------------------------------------------------------------------
+
+def _normalized(cameras: list[Camera], pixels: np.ndarray) -> np.ndarray:
+    """(C, T, N, 2) undistorted normalized coordinates, NaN where undetected or without a ray."""
+    out = np.full(pixels.shape, np.nan)
+    for c, cam in enumerate(cameras):
+        ok = np.all(np.isfinite(pixels[c]), axis=-1)
+        xy, valid = cam.undistorted(pixels[c][ok])
+        keep = np.where(valid[:, None], xy, np.nan)
+        out[c][ok] = keep
+    return out
+
+
+def shifted(track: np.ndarray, shift: int, segments: np.ndarray) -> np.ndarray:
+    """track (T, ...) read ``shift`` frames later: out[f] = track[f + shift], NaN where f + shift
+    leaves the sequence or its segment (frames of different recordings are not neighbours)."""
+    T = len(track)
+    out = np.full(track.shape, np.nan)
+    f = np.arange(T)
+    g = f + shift
+    ok = (g >= 0) & (g < T)
+    ok[ok] &= segments[g[ok]] == segments[f[ok]]
+    out[f[ok]] = track[g[ok]]
+    return out
+
+
+def _pair(xa: np.ndarray, xb: np.ndarray, threshold: float, rng_seed: int):
+    """RANSAC essential matrix of matched normalized points (T, N, 2) -> (inliers, E, mask,
+    points a, points b) or None."""
+    both = np.all(np.isfinite(xa), -1) & np.all(np.isfinite(xb), -1)
+    pa, pb = xa[both], xb[both]
+    if len(pa) < MIN_PAIR_INLIERS:
+        return None
+    if len(pa) > MAX_PAIR_POINTS:
+        pick = np.random.default_rng(rng_seed).choice(len(pa), MAX_PAIR_POINTS, replace=False)
+        pa, pb = pa[np.sort(pick)], pb[np.sort(pick)]
+    cv2.setRNGSeed(rng_seed)
+    E, mask = cv2.findEssentialMat(pa, pb, np.eye(3), method=cv2.RANSAC, prob=0.999,
+                                   threshold=threshold)
+    if E is None or E.shape != (3, 3):  # several solutions stacked: none is trusted
+        return None
+    mask = mask.ravel().astype(bool)
+    return int(mask.sum()), E, mask, pa, pb
+
+
+def pair_geometry(x: np.ndarray, a: int, b: int, max_shift: int, threshold: float,
+                  segments: np.ndarray) -> dict | None:
+    """The shift d (camera b's clock ahead of a's, frames) with the most RANSAC inliers, and
+    b_from_a (R, unit t) at that shift; None if no shift gives MIN_PAIR_INLIERS."""
+    best = None
+    for d in range(-max_shift, max_shift + 1):
+        # b's frame g shows a's time g + d: pair a's frame g + d with b's frame g.
+        found = _pair(shifted(x[a], d, segments), x[b], threshold, 1000 * a + b)
+        if found is not None and (best is None or found[0] > best[1][0]):
+            best = (d, found)
+    if best is None or best[1][0] < MIN_PAIR_INLIERS:
+        return None
+    d, (inliers, E, mask, pa, pb) = best
+    _, R, t, _ = cv2.recoverPose(E, pa, pb, np.eye(3), mask=mask.astype(np.uint8)[:, None])
+    return {"shift": d, "inliers": inliers, "R": R, "t": t.ravel()}
+
+
+# ----------------------------------------------------------------------------------------------
+# 2. Join
+# ----------------------------------------------------------------------------------------------
+
+def spanning_tree(pairs: dict, n: int, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """(order, parent) of a maximum spanning tree over the pairs (weight: inliers) from
+    camera 0; ValueError naming the cameras no pair joins."""
+    W = np.zeros((n, n))
+    for (a, b), p in pairs.items():
+        W[a, b] = 1.0 / (1.0 + p["inliers"])  # more inliers, lighter edge
+    order, parent = breadth_first_order(minimum_spanning_tree(W), 0, directed=False)
+    if len(order) < n:
+        lost = [names[c] for c in range(n) if c not in set(order.tolist())]
+        raise ValueError(f"cameras {lost} share too few body joints with camera {names[0]!r} "
+                         f"(at least {MIN_PAIR_INLIERS} consistent joints per pair): they "
+                         f"cannot be joined; are the people in their views?")
+    return order, parent
+
+
+def _edge(pairs: dict, a: int, b: int):
+    """(shift of b against a, b_from_a R, t) whichever way the pair was measured."""
+    if (a, b) in pairs:
+        p = pairs[(a, b)]
+        return p["shift"], p["R"], p["t"]
+    p = pairs[(b, a)]
+    return -p["shift"], p["R"].T, -p["R"].T @ p["t"]
+
+
+def _posed(camera: Camera, R: np.ndarray, t: np.ndarray) -> Camera:
+    return camera.with_params(rvec=matrix_to_rodrigues(R), tvec=np.asarray(t, float))
+
+
+def _synchronised(x: np.ndarray, shifts: np.ndarray, segments: np.ndarray) -> np.ndarray:
+    """Each camera's tracks read at camera 0's frames: camera c's frame f - shift_c."""
+    return np.stack([shifted(x[c], -int(s), segments) for c, s in enumerate(shifts)])
+
+
+def initial_rig(cameras: list[Camera], pixels: np.ndarray, x: np.ndarray, pairs: dict,
+                order: np.ndarray, parent: np.ndarray, threshold: float,
+                segments: np.ndarray) -> tuple[list[Camera], np.ndarray]:
+    """(cameras posed in camera 0's frame at the first pair's scale, whole-frame shifts (C,))."""
+    n = len(cameras)
+    shifts = np.zeros(n, dtype=int)
+    for c in order[1:]:
+        shifts[c] = shifts[parent[c]] + _edge(pairs, parent[c], c)[0]
+    sync = _synchronised(pixels, shifts, segments)
+    xs = _synchronised(x, shifts, segments)
+    posed = {0: _posed(cameras[0], np.eye(3), np.zeros(3))}
+    first = order[1]
+    _, R, t = _edge(pairs, 0, first)  # the tree's first edge leaves the root
+    posed[first] = _posed(cameras[first], R, t)
+    for c in order[2:]:
+        known = sorted(posed)
+        X = triangulate_dlt([posed[k] for k in known], sync[known])
+        ok = np.all(np.isfinite(X), -1) & np.all(np.isfinite(xs[c]), -1)
+        if np.count_nonzero(ok) < MIN_PAIR_INLIERS:
+            raise ValueError(f"camera {cameras[c].name!r} sees too few of the joints triangulated "
+                             f"by the cameras before it ({np.count_nonzero(ok)})")
+        found, rvec, tvec, inl = cv2.solvePnPRansac(
+            X[ok].astype(np.float64), xs[c][ok].astype(np.float64), np.eye(3), None,
+            reprojectionError=threshold, iterationsCount=1000, confidence=0.999,
+            flags=cv2.SOLVEPNP_EPNP)
+        if not found or inl is None or len(inl) < MIN_PAIR_INLIERS:
+            raise ValueError(f"camera {cameras[c].name!r}: no pose agrees with the joints "
+                             f"triangulated by the cameras before it")
+        inl = inl.ravel()
+        _, rvec, tvec = cv2.solvePnP(X[ok][inl], xs[c][ok][inl], np.eye(3), None, rvec, tvec,
+                                     useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+        posed[c] = _posed(cameras[c], rodrigues_to_matrix(rvec.ravel()), tvec.ravel())
+    return [posed[c] for c in range(n)], shifts
+
+
+# ----------------------------------------------------------------------------------------------
+# 3. Bundle adjustment
+# ----------------------------------------------------------------------------------------------
+
+def catmull_rom(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weights (M, 4) of the points at frames i-1, i, i+1, i+2 for the position at i + u, and
+    their derivatives in u (M, 4): the Catmull-Rom spline, which passes through every frame."""
+    u = np.asarray(u, dtype=np.float64)[:, None]
+    u2, u3 = u * u, u * u * u
+    w = np.hstack([(-u3 + 2 * u2 - u) / 2, (3 * u3 - 5 * u2 + 2) / 2,
+                   (-3 * u3 + 4 * u2 + u) / 2, (u3 - u2) / 2])
+    dw = np.hstack([(-3 * u2 + 4 * u - 1) / 2, (9 * u2 - 10 * u) / 2,
+                    (-9 * u2 + 8 * u + 1) / 2, (3 * u2 - 2 * u) / 2])
+    return w, dw
+
+
+class _Bundle:
+    """The bundle adjustment's problem: parameters [poses of cameras 1.. (rvec, t) | offsets of
+    cameras 1.. (frames) if estimated | active points (3 each)]; residuals: the weighted
+    reprojection errors (px) of the observations whose spline stencil is all active points.
+
+    Stencils are fixed when the problem is built (from the offsets then); an offset that moves
+    by less than a frame stays on its stencil's spline, which extends smoothly past its ends,
+    and :func:`bundle_adjust` rebuilds the problem between rounds."""
+
+    def __init__(self, cameras, pixels, weights, points, offsets, estimate_offsets, segments):
+        C, T, N = pixels.shape[:3]
+        self.cameras, self.C, self.T, self.N = cameras, C, T, N
+        self.estimate_offsets = estimate_offsets
+        active = np.all(np.isfinite(points), -1)
+        self.index = np.full((T, N), -1)
+        self.index[active] = np.arange(np.count_nonzero(active))
+        self.n_points = int(np.count_nonzero(active))
+        width = 4 if estimate_offsets else 1
+        self.obs = []  # per camera: (uv (M, 2), w (M,), stencil point indices (M, width), base)
+        for c in range(C):
+            f, n = np.nonzero(np.all(np.isfinite(pixels[c]), -1) & (weights[c] > 0))
+            tau = f + offsets[c]
+            if estimate_offsets:
+                i = np.floor(tau).astype(int)
+                frames = i[:, None] + np.arange(-1, 3)
+            else:
+                i = np.rint(tau).astype(int)
+                frames = i[:, None]
+            inside = np.all((frames >= 0) & (frames < T), 1)
+            frames, f, n, i = frames[inside], f[inside], n[inside], i[inside]
+            same = np.all(segments[frames] == segments[f][:, None], 1)
+            stencil = self.index[frames, n[:, None]]
+            keep = same & np.all(stencil >= 0, 1)
+            self.obs.append((pixels[c][f[keep], n[keep]], weights[c][f[keep], n[keep]],
+                             stencil[keep], i[keep] - f[keep]))
+        self.n_res = 2 * sum(len(o[0]) for o in self.obs)
+
+    def pack(self, cameras, offsets, points) -> np.ndarray:
+        poses = [np.concatenate([cam.rvec, cam.tvec]) for cam in cameras[1:]]
+        parts = [np.concatenate(poses) if poses else np.zeros(0)]
+        if self.estimate_offsets:
+            parts.append(np.asarray(offsets[1:], float))
+        parts.append(points[self.index >= 0].ravel())
+        return np.concatenate(parts)
+
+    def unpack(self, x):
+        k = 6 * (self.C - 1)
+        poses = x[:k].reshape(-1, 6)
+        cams = [self.cameras[0]] + [cam.with_params(rvec=p[:3], tvec=p[3:])
+                                    for cam, p in zip(self.cameras[1:], poses)]
+        offsets = np.zeros(self.C)
+        if self.estimate_offsets:
+            offsets[1:] = x[k:k + self.C - 1]
+            k += self.C - 1
+        return cams, offsets, x[k:].reshape(-1, 3)
+
+    def _point_column(self) -> int:
+        return 6 * (self.C - 1) + (self.C - 1 if self.estimate_offsets else 0)
+
+    def _evaluate(self, x, jacobian: bool):
+        cams, offsets, P = self.unpack(x)
+        res, rows, cols, vals = [], [], [], []
+        row = 0
+        p0 = self._point_column()
+        for c, (uv, w, stencil, base) in enumerate(self.obs):
+            M = len(uv)
+            if M == 0:
+                continue
+            cam = cams[c]
+            if self.estimate_offsets:
+                # tau = f + offset; the stencil starts at frame f + base - 1.
+                u = offsets[c] - base
+                wts, dwts = catmull_rom(u)
+                Xs = P[stencil]  # (M, 4, 3)
+                X = np.einsum("mk,mkd->md", wts, Xs)
+            else:
+                X = P[stencil[:, 0]]
+            proj, J = project_with_jacobians(X, cam.intrinsics, cam.dist, cam.rvec, cam.tvec,
+                                             jacobians=jacobian, model=cam.model)
+            res.append(((proj - uv) * w[:, None]).ravel())
+            if jacobian:
+                r = row + np.arange(2 * M).reshape(M, 2)
+                Jp = J["point"] * w[:, None, None]  # (M, 2, 3)
+                if c > 0:
+                    Jpose = J["pose"] * w[:, None, None]
+                    rows.append(np.repeat(r[:, :, None], 6, 2).ravel())
+                    cols.append(np.broadcast_to(6 * (c - 1) + np.arange(6), (M, 2, 6)).ravel())
+                    vals.append(Jpose.ravel())
+                    if self.estimate_offsets:
+                        dX = np.einsum("mk,mkd->md", dwts, Xs)
+                        rows.append(r.ravel())
+                        cols.append(np.full(2 * M, 6 * (self.C - 1) + c - 1))
+                        vals.append(np.einsum("mij,mj->mi", Jp, dX).ravel())
+                weights_k = wts if self.estimate_offsets else np.ones((M, 1))
+                for k in range(stencil.shape[1]):
+                    rows.append(np.repeat(r[:, :, None], 3, 2).ravel())
+                    cols.append((p0 + 3 * stencil[:, k, None, None] + np.arange(3)).repeat(
+                        2, 1).ravel())
+                    vals.append((Jp * weights_k[:, k, None, None]).ravel())
+            row += 2 * M
+        r = np.concatenate(res) if res else np.zeros(0)
+        if not jacobian:
+            return r
+        shape = (self.n_res, len(x))
+        return r, coo_matrix((np.concatenate(vals), (np.concatenate(rows),
+                                                     np.concatenate(cols))), shape).tocsr()
+
+    def residuals(self, x):
+        return self._evaluate(x, False)
+
+    def jacobian(self, x):
+        return self._evaluate(x, True)[1]
+
+
+def bundle_adjust(cameras, pixels, weights, points, offsets, estimate_offsets: bool,
+                  segments: np.ndarray, rounds: int = 2):
+    """(cameras, offsets (C,), points (T, N, 3), rms px over inliers, robust scale px) after
+    ``rounds`` of bundle adjustment (see the module notes); camera 0 holds the gauge."""
+    scale_px = None
+    for _ in range(rounds):
+        problem = _Bundle(cameras, pixels, weights, points, offsets, estimate_offsets, segments)
+        x0 = problem.pack(cameras, offsets, points)
+        r0 = problem.residuals(x0)
+        if scale_px is None:  # the soft L1 scale: 3 robust deviations of the start's residuals
+            scale_px = max(0.5, 3 * 1.4826 * float(np.median(np.abs(r0))))
+        sol = least_squares(problem.residuals, x0, jac=problem.jacobian, method="trf",
+                            loss="soft_l1", f_scale=scale_px, x_scale="jac",
+                            tr_solver="lsmr", max_nfev=50, xtol=1e-10, ftol=1e-8)
+        cameras, offsets, P = problem.unpack(sol.x)
+        points = np.full(points.shape, np.nan)
+        points[problem.index >= 0] = P
+        r = sol.fun.reshape(-1, 2)
+        scale_px = max(0.5, 3 * 1.4826 * float(np.median(np.abs(sol.fun))))
+    e = np.linalg.norm(r, axis=1)
+    inl = e < 2 * scale_px
+    rms = float(np.sqrt(np.mean(e[inl] ** 2))) if inl.any() else float("nan")
+    return cameras, offsets, points, rms, scale_px
+
+
+# ----------------------------------------------------------------------------------------------
+# 4-5. Vertical and scale
+# ----------------------------------------------------------------------------------------------
+
+def _plane(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(centroid, unit normal, singular values) of the least-squares plane, refitted once
+    without the points beyond 3 robust deviations."""
+    for _ in range(2):
+        centre = points.mean(0)
+        _, s, Vt = np.linalg.svd(points - centre, full_matrices=False)
+        normal = Vt[2]
+        d = (points - centre) @ normal
+        mad = 1.4826 * np.median(np.abs(d - np.median(d)))
+        keep = np.abs(d - np.median(d)) <= 3 * max(mad, 1e-12)
+        if keep.all() or keep.sum() < 10:
+            break
+        points = points[keep]
+    return centre, normal, s
+
+
+def stances(points: np.ndarray, feet: tuple[int, ...]) -> np.ndarray:
+    """(K, 3) the foot joints' positions in the slowest STANCE_SHARE of their frames."""
+    out = []
+    for n in feet:
+        track = points[:, n]
+        speed = np.linalg.norm(track[2:] - track[:-2], axis=-1)  # central differences
+        ok = np.isfinite(speed)
+        if np.count_nonzero(ok) < 6:
+            continue
+        slow = ok & (speed <= np.quantile(speed[ok], STANCE_SHARE))
+        out.append(track[1:-1][slow])
+    return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+def floor_frame(points: np.ndarray, skeleton: Skeleton, camera0: Camera
+                ) -> tuple[np.ndarray, np.ndarray, str, float]:
+    """(world_from_ref R, t, how the vertical was found, the stance plane's offset along up)
+    of the floor frame (module notes), from points (T, N, 3) in camera 0's frame."""
+    feet = stances(points, skeleton.feet)
+    heads = points[:, list(skeleton.heads)].reshape(-1, 3)
+    heads = heads[np.all(np.isfinite(heads), -1)]
+    all_feet = points[:, list(skeleton.feet)].reshape(-1, 3)
+    all_feet = all_feet[np.all(np.isfinite(all_feet), -1)]
+    if len(heads) == 0 or len(all_feet) == 0:
+        raise ValueError("no feet or heads were reconstructed: the vertical cannot be found")
+    centre, up, s = (_plane(feet) if len(feet) >= 10 else (None, None, np.zeros(3)))
+    if up is not None and s[1] > FLAT_SPREAD * s[0]:
+        how = "floor"
+    else:  # the feet stayed at a few spots: the body's own axis is the vertical
+        up = heads.mean(0) - all_feet.mean(0)
+        up /= np.linalg.norm(up)
+        centre, how = all_feet.mean(0), "body axis"
+    if np.dot(heads.mean(0) - all_feet.mean(0), up) < 0:
+        up = -up
+    if up is None:
+        raise ValueError("no vertical")
+    view = np.array([0.0, 0.0, 1.0])  # camera 0's optical axis in its own frame
+    x = view - np.dot(view, up) * up
+    if np.linalg.norm(x) < 1e-6:  # camera 0 looks straight down: its image x instead
+        x = np.array([1.0, 0.0, 0.0]) - up[0] * up
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(up, x), up])  # rows: the world axes in camera 0's frame
+    finite = points[np.all(np.isfinite(points), -1)]
+    middle = finite.mean(0)
+    origin = middle - np.dot(middle - centre, up) * up
+    return R, -R @ origin, how, float(np.dot(centre, up))
+
+
+def head_height(points: np.ndarray, skeleton: Skeleton, R: np.ndarray, t: np.ndarray) -> float:
+    """The heads' median height above the stance plane (world frame z), in the points' units."""
+    heads = points[:, list(skeleton.heads)].reshape(-1, 3)
+    heads = heads[np.all(np.isfinite(heads), -1)]
+    return float(np.median(heads @ R[2] + t[2]))
+
+
+# ----------------------------------------------------------------------------------------------
+# The method
+# ----------------------------------------------------------------------------------------------
+
+def calibrate_from_body(cameras: list[Camera], pixels: np.ndarray, confidence: np.ndarray,
+                        skeleton: Skeleton, scale: Scale, max_offset_frames: int = 0,
+                        threshold_px: float = 6.0, segments: np.ndarray | None = None
+                        ) -> BodyCalibration:
+    """The studio from body keypoints (module notes).
+
+    cameras: the known intrinsics (their poses are ignored); pixels (C, T, N, 2), NaN where
+    undetected, and confidence (C, T, N), 0 where undetected: N tracks (every person's joints
+    side by side), T frames of each camera's own clock. max_offset_frames: how far the clocks
+    may disagree, in whole frames (0: synchronised cameras, offsets not estimated). segments
+    (T,): a label per frame; frames of different labels (recordings) are not neighbours.
+    threshold_px: the RANSAC inlier bound.
+    """
+    pixels = np.asarray(pixels, dtype=np.float64)
+    confidence = np.asarray(confidence, dtype=np.float64)
+    C, T, N = pixels.shape[:3]
+    names = [c.name for c in cameras]
+    if pixels.shape != (len(cameras), T, N, 2) or confidence.shape != (C, T, N):
+        raise ValueError(f"keypoints: expected pixels (C, T, N, 2) and confidence (C, T, N) for "
+                         f"{len(cameras)} cameras, got {pixels.shape} and {confidence.shape}")
+    if C < 2:
+        raise ValueError("calibration from the body needs at least two cameras")
+    if scale.cameras is not None and not set(scale.cameras) <= set(names):
+        raise ValueError(f"scale: cameras {list(scale.cameras)} are not all among {names}")
+    segments = np.zeros(T, dtype=int) if segments is None else np.asarray(segments)
+    pixels = np.where((confidence > 0)[..., None], pixels, np.nan)
+    x = _normalized(cameras, pixels)
+    focal = float(np.mean([[c.fx, c.fy] for c in cameras]))
+    threshold = threshold_px / focal
+    pairs = {}
+    for a in range(C):
+        for b in range(a + 1, C):
+            found = pair_geometry(x, a, b, max_offset_frames, threshold, segments)
+            if found is not None:
+                pairs[(a, b)] = found
+    order, parent = spanning_tree(pairs, C, names)
+    posed, shifts = initial_rig(cameras, pixels, x, pairs, order, parent, threshold, segments)
+    sync = _synchronised(pixels, shifts, segments)
+    points = triangulate_dlt(posed, sync)
+    # Points far off their views (an outlier detection drags a two-view DLT) start the bundle
+    # adjustment as missing rather than as a wrong start.
+    err = np.stack([np.linalg.norm(cam.project(points.reshape(-1, 3)).reshape(T, N, 2) - sync[c],
+                                   axis=-1) for c, cam in enumerate(posed)])
+    bad = np.nanmax(np.where(np.isfinite(err), err, 0), axis=0) > 10 * threshold_px
+    points[bad] = np.nan
+    weights = np.where(np.isfinite(pixels[..., 0]), confidence, 0.0)
+    estimate = max_offset_frames > 0
+    posed, offsets, points, rms, _ = bundle_adjust(posed, pixels, weights, points,
+                                                   shifts.astype(float), estimate, segments)
+    R, t, how, _ = floor_frame(points, skeleton, posed[0])
+    if scale.baseline_mm is not None:
+        a, b = (names.index(n) for n in scale.cameras)
+        s = scale.baseline_mm / np.linalg.norm(posed[a].center - posed[b].center)
+    else:
+        s = scale.height_mm / (skeleton.stature_per_head * head_height(points, skeleton, R, t))
+    world = []
+    for cam in posed:  # cam_from_world = cam_from_ref o ref_from_world, ref scaled by s
+        Rc = cam.R @ R.T
+        world.append(_posed(cam, Rc, s * cam.tvec - Rc @ (s * t)))
+    world_points = s * (points @ R.T + t)
+    return BodyCalibration(
+        world, offsets, world_points, rms, how,
+        [{"cameras": [names[a], names[b]], "shift": p["shift"], "inliers": p["inliers"]}
+         for (a, b), p in sorted(pairs.items())],
+        [names[c] for c in order])
