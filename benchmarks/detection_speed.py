@@ -11,20 +11,30 @@ same load on this machine, by
   then cornerSubPix (11 x 11 window, 30 iterations or 0.001 px); findCirclesGrid with its default
   blob detector; cv2.aruco.CharucoDetector.detectBoard.
 
+With ``--baseline REV`` the detection of git revision REV (checked out with ``git worktree add``
+into a temporary directory and run in a subprocess that imports stereo_bench from there) is
+timed on the same frames in the same turn, and the table says how far the working tree's points
+are from that revision's (max |difference|, px, and whether the same points are NaN).
+
 Prints, per pattern, camera and detector: frames found, share of the visible points detected,
 mean and max distance to the exact ground truth (px, over the detected points of frames not
 flipped), orientation flips, and wall-clock seconds per frame, with the OpenCV version and its
 thread count (timings depend on both).  It prints, it does not assert.
 
-    python benchmarks/detection_speed.py [--frames 8] [--keep DIR]
+    python benchmarks/detection_speed.py [--frames 8] [--keep DIR] [--baseline REV]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import os
+import pickle
+import subprocess
 import sys
 import tempfile
 import time
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
 import cv2
@@ -38,6 +48,28 @@ from stereo_bench.detect.dataset import CameraDetections, detection_errors
 COLUMNS = ("pattern", "camera", "detector", "frames found", "points found", "mean", "max",
            "flips", "s/frame")
 SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.001)
+REPO = Path(__file__).resolve().parents[1]
+# The subprocess that runs a revision's detection: reads (kind, pattern fields, gray image) from
+# stdin, writes (points, seconds in detect) to stdout, with the stereo_bench first on its path.
+SERVER = """
+import pickle, sys, time
+try:
+    from stereo_bench.core.patterns import pattern_from_config
+    from stereo_bench.detect.boards import detect
+except ImportError:  # revisions before the packages (stereo_bench/detect.py, patterns.py)
+    from stereo_bench.detect import detect
+    from stereo_bench.patterns import pattern_from_config
+while True:
+    try:
+        kind, fields, gray = pickle.load(sys.stdin.buffer)
+    except EOFError:
+        break
+    pattern = pattern_from_config(kind, **fields)
+    start = time.perf_counter()
+    points = detect(gray, pattern).points
+    pickle.dump((points, time.perf_counter() - start), sys.stdout.buffer)
+    sys.stdout.buffer.flush()
+"""
 
 
 def opencv_pipeline(gray: np.ndarray, pattern) -> np.ndarray:
@@ -75,47 +107,101 @@ def dataset_for(root: Path, camera: str, path: Path, kind: str, frames: int) -> 
     return write_dataset(rig_with_board(path, kind, frames), out)
 
 
+@contextmanager
+def revision_detector(rev: str):
+    """A function (gray, pattern) -> (points, seconds) that runs ``rev``'s detection: the
+    revision checked out in a temporary git worktree, a subprocess (``SERVER``) importing
+    stereo_bench from there, timed inside the subprocess around detect alone."""
+    with tempfile.TemporaryDirectory() as tmp:
+        tree = Path(tmp) / "tree"
+        subprocess.run(["git", "-C", str(REPO), "worktree", "add", "--detach", "--quiet",
+                        str(tree), rev], check=True)
+        server = subprocess.Popen([sys.executable, "-c", SERVER], cwd=tree,
+                                  env={**os.environ, "PYTHONPATH": str(tree)},
+                                  stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        try:
+            def run(gray, pattern):
+                fields = {f.name: getattr(pattern, f.name) for f in dataclasses.fields(pattern)
+                          if f.init}
+                pickle.dump((pattern.kind, fields, gray), server.stdin)
+                server.stdin.flush()
+                return pickle.load(server.stdout)
+            yield run
+        finally:
+            server.stdin.close()
+            server.wait()
+            subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)],
+                           check=True)
+
+
+def timed(run):
+    """A detector (gray, pattern) -> (points, seconds) from one that returns points only."""
+    def detector(gray, pattern):
+        start = time.perf_counter()
+        points = run(gray, pattern)
+        return points, time.perf_counter() - start
+    return detector
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--frames", type=int, default=8, help="frames per dataset (default 8)")
     parser.add_argument("--keep", type=Path, help="write (or reuse) the datasets here instead of "
                                                   "a temp dir")
+    parser.add_argument("--baseline", metavar="REV", help="also time git revision REV's "
+                                                          "detection on the same frames")
     args = parser.parse_args(argv)
     if args.frames < 1:
         raise ValueError(f"--frames: expected a positive frame count, got {args.frames}")
 
-    print(f"OpenCV {cv2.__version__} ({cv2.getNumThreads()} threads), {args.frames} frames per "
-          f"dataset, clean renders; distances in px against the ground truth\n")
-    print(row(COLUMNS))
-    print(row("---" for _ in COLUMNS))
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, (
+            revision_detector(args.baseline) if args.baseline else nullcontext()) as baseline:
+        detectors = {"stereo_bench": timed(lambda gray, pattern: detect(gray, pattern).points),
+                     "OpenCV": timed(opencv_pipeline)}
+        columns = COLUMNS
+        if baseline:
+            detectors = {f"stereo_bench@{args.baseline}": baseline, **detectors}
+            columns += ("max |new - base| px", "same NaN rows")
+        print(f"OpenCV {cv2.__version__} ({cv2.getNumThreads()} threads), {args.frames} frames "
+              f"per dataset, clean renders; distances in px against the ground truth\n")
+        print(row(columns))
+        print(row("---" for _ in columns))
         root = args.keep or Path(tmp)
         for kind in METHODS:
             for camera, path in CAMERAS.items():
-                dataset = dataset_for(root, camera, path, kind, args.frames)
-                pattern, n = dataset.pattern, len(dataset.pattern.ids())
-                results = {name: (np.full((dataset.frames, n, 2), np.nan), [0.0])
-                           for name in ("stereo_bench", "OpenCV")}
-                for f in range(dataset.frames):
-                    gray = dataset.image(0, f)
-                    if gray.ndim == 3:
-                        gray = cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
-                    for name, run in (("stereo_bench", lambda: detect(gray, pattern).points),
-                                      ("OpenCV", lambda: opencv_pipeline(gray, pattern))):
-                        start = time.perf_counter()
-                        results[name][0][f] = run()
-                        results[name][1][0] += time.perf_counter() - start
-                truth = dataset.ground_truth
-                for name, (points, seconds) in results.items():
-                    found = np.isfinite(points).all(-1).any(-1)
-                    e = detection_errors(CameraDetections(camera, kind, name, points, found,
-                                                          pattern.ids()),
-                                         truth.points[0], truth.visible[0])
-                    print(row([kind, camera, name, f"{e['found']}/{e['frames']}",
-                               f"{100 * e['point_detection_rate']:.1f} %",
-                               f"{e['mean_px']:.4f}", f"{e['max_px']:.4f}", e["flips"],
-                               f"{seconds[0] / dataset.frames:.3f}"]))
-                sys.stdout.flush()
+                measure(dataset_for(root, camera, path, kind, args.frames), camera, kind,
+                        detectors, args.baseline)
+
+
+def measure(dataset: Dataset, camera: str, kind: str, detectors: dict, baseline: str | None):
+    """Detect every frame of ``dataset`` with each detector in turn (frame by frame, so all
+    see the same load) and print a row per detector."""
+    pattern, n = dataset.pattern, len(dataset.pattern.ids())
+    points = {name: np.full((dataset.frames, n, 2), np.nan) for name in detectors}
+    seconds = dict.fromkeys(detectors, 0.0)
+    for f in range(dataset.frames):
+        gray = dataset.image(0, f)
+        if gray.ndim == 3:
+            gray = cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
+        for name, run in detectors.items():
+            points[name][f], spent = run(gray, pattern)
+            seconds[name] += spent
+    truth = dataset.ground_truth
+    for name in detectors:
+        found = np.isfinite(points[name]).all(-1).any(-1)
+        e = detection_errors(CameraDetections(camera, kind, name, points[name], found,
+                                              pattern.ids()),
+                             truth.points[0], truth.visible[0])
+        cells = [kind, camera, name, f"{e['found']}/{e['frames']}",
+                 f"{100 * e['point_detection_rate']:.1f} %", f"{e['mean_px']:.4f}",
+                 f"{e['max_px']:.4f}", e["flips"], f"{seconds[name] / dataset.frames:.3f}"]
+        if baseline:
+            old, new = points[f"stereo_bench@{baseline}"], points["stereo_bench"]
+            same = np.array_equal(np.isnan(old), np.isnan(new))
+            cells += ([f"{np.nanmax(np.abs(new - old), initial=0.0):.1e}", "yes" if same else "NO"]
+                      if name == "stereo_bench" else ["", ""])
+        print(row(cells))
+    sys.stdout.flush()
 
 
 if __name__ == "__main__":

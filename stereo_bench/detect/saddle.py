@@ -20,18 +20,35 @@ _SADDLE_MARGIN = 3  # px a saddle window may move before its gradient patch is r
 def _leave_one_out(object_xy: np.ndarray, points: np.ndarray, radius_mm: float) -> np.ndarray:
     """(N,) how far each point lies from where its neighbours (within ``radius_mm``, the point
     itself left out) put it by an affine fit, in board mm; NaN where it cannot be predicted."""
-    out = np.full(len(points), np.nan)
     seen = np.isfinite(points).all(axis=1)
-    near = np.linalg.norm(object_xy[:, None] - object_xy[None], axis=-1) <= radius_mm
-    for i in np.flatnonzero(seen):
-        nb = np.flatnonzero(near[i] & seen)
-        nb = nb[nb != i]
-        if len(nb) < 3:  # an affine map needs three (a board corner has exactly three)
-            continue
-        X = np.column_stack([object_xy[nb] - object_xy[i], np.ones(len(nb))])
-        sol = np.linalg.lstsq(X, points[nb], rcond=None)[0]  # rows: d/dx, d/dy, value at i
-        out[i] = np.linalg.norm(sol[2] - points[i]) / np.linalg.norm(sol[:2], 2)
+    near = _neighbours(object_xy, seen, radius_mm)
+    fitted = seen & (near.sum(axis=1) >= 3)  # an affine map needs three
+    near = near[fitted]
+    # Least squares on [offset x, offset y, 1] -> px for all points at once (rows: d/dx, d/dy,
+    # value at the point), as lstsq would solve each: its minimum-norm answer where singular.
+    X = np.concatenate([object_xy[None] - object_xy[fitted, None], np.ones(near.shape + (1,))],
+                       -1) * near[..., None]
+    sol = _least_squares(X, np.where(near[..., None], points[None], 0.0))
+    out = np.full(len(points), np.nan)
+    out[fitted] = (np.linalg.norm(sol[:, 2] - points[fitted], axis=1)
+                   / np.linalg.norm(sol[:, :2], 2, axis=(1, 2)))
     return out
+
+
+def _neighbours(object_xy: np.ndarray, seen: np.ndarray, radius_mm: float) -> np.ndarray:
+    """(N, N) bool: point j is seen and within ``radius_mm`` (board) of point i, j != i."""
+    near = np.linalg.norm(object_xy[:, None] - object_xy[None], axis=-1) <= radius_mm
+    np.fill_diagonal(near, False)
+    return near & seen & seen[:, None]
+
+
+def _least_squares(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """Solutions (N, K, D) of the N problems X (N, R, K) sol = Y (N, R, D) by least squares,
+    minimum norm where X is rank deficient: the normal equations through a pseudo-inverse with
+    lstsq's cut-off (rows of zeros in X and Y leave a problem unchanged)."""
+    normal = np.swapaxes(X, 1, 2) @ X
+    return np.linalg.pinv(normal, rtol=X.shape[2] * np.finfo(float).eps) @ (
+        np.swapaxes(X, 1, 2) @ Y)
 
 
 def drop_grid_outliers(object_xy: np.ndarray, points: np.ndarray, step_mm: float) -> np.ndarray:
@@ -66,19 +83,20 @@ def local_affines(object_xy: np.ndarray, points: np.ndarray, radius_mm: float):
     Least squares on the differences to the point itself.  Returns (N, 2, 2) maps (NaN where the
     point is missing or has fewer than two non-collinear neighbours) and (N,) misfits: the largest
     residual of a neighbour, expressed in board mm (residual px / the map's largest stretch).
+    All points are fitted at once (a loop of lstsq calls cost more than the saddle fit's steps).
     """
+    seen = np.isfinite(points).all(axis=1)
+    near = _neighbours(object_xy, seen, radius_mm)
+    d_obj = (object_xy[None] - object_xy[:, None]) * near[..., None]  # rows of zeros: not near
+    d_img = np.where(near[..., None], points[None] - points[:, None], 0.0)
+    fitted = seen & (np.linalg.matrix_rank(d_obj) == 2)
+    near, d_obj, d_img = near[fitted], d_obj[fitted], d_img[fitted]
+    A = np.swapaxes(_least_squares(d_obj, d_img), 1, 2)
+    residual = np.where(near, np.linalg.norm(d_obj @ np.swapaxes(A, 1, 2) - d_img, axis=2), 0.0)
     affines = np.full((len(points), 2, 2), np.nan)
     misfit = np.full(len(points), np.nan)
-    seen = np.isfinite(points).all(axis=1)
-    for i in np.flatnonzero(seen):
-        near = seen & (np.linalg.norm(object_xy - object_xy[i], axis=1) <= radius_mm)
-        near[i] = False
-        d_obj, d_img = object_xy[near] - object_xy[i], points[near] - points[i]
-        if len(d_obj) < 2 or np.linalg.matrix_rank(d_obj) < 2:
-            continue
-        A = np.linalg.lstsq(d_obj, d_img, rcond=None)[0].T
-        affines[i] = A
-        misfit[i] = np.linalg.norm(d_obj @ A.T - d_img, axis=1).max() / np.linalg.norm(A, 2)
+    affines[fitted] = A
+    misfit[fitted] = residual.max(axis=1) / np.linalg.norm(A, 2, axis=(1, 2))
     return affines, misfit
 
 
@@ -162,8 +180,9 @@ def refine_saddles(gray, points: np.ndarray, object_xy: np.ndarray, square_mm: f
     stay out).  Gradients are central differences on a copy blurred with ``sigma`` px.
     On clean renders of the wide camera (tests/detect/test_detect.py's views) this measured the
     checkerboard to 0.010 px mean (cornerSubPix with the old window: 0.013) and ChArUco to
-    0.020 px (0.028) with ``reach`` 0.8 (its cross of bands holds few pixels).  A corner without a local map keeps its estimate; one whose fit fails,
-    does not converge or moves by more than a quarter square is NaN (not measured).
+    0.020 px (0.028) with ``reach`` 0.8 (its cross of bands holds few pixels).  A corner
+    without a local map keeps its estimate; one whose fit fails, does not converge or moves by
+    more than a quarter square is NaN (not measured).
     """
     affines, _ = local_affines(object_xy, points, 1.5 * square_mm)
     guard = 3.0 * sigma + 2.0
@@ -225,12 +244,13 @@ def refine_saddles(gray, points: np.ndarray, object_xy: np.ndarray, square_mm: f
 
 def _gradient_moments(gray, origin: np.ndarray, size: int, sigma: float) -> np.ndarray:
     """Per pixel of the squares of ``size`` px whose top-left pixels are ``origin`` (M, 2) (x, y):
-    (M, size * size, 5) float64 [gx gx, gx gy, gy gy, gx (gx x + gy y), gy (gx x + gy y)], with
+    (M, 5, size * size) float64 [gx gx, gx gy, gy gy, gx (gx x + gy y), gy (gx x + gy y)], with
     (gx, gy) the gradient (central differences) of ``gray`` blurred with ``sigma`` and (x, y)
     the pixel relative to the square's top-left; zero where it would need pixels off the image.
 
     Every sum of the saddle fit is a weighted sum of these, so an iteration is one product with
-    the weights: the gradients are computed once however often the window moves.
+    the weights: the gradients are computed once however often the window moves.  Each moment
+    is a contiguous plane (interleaving the five cost more than computing them).
     """
     blurred = np.zeros((len(origin), size + 2, size + 2))
     for k, (x, y) in enumerate(origin):
@@ -243,20 +263,22 @@ def _gradient_moments(gray, origin: np.ndarray, size: int, sigma: float) -> np.n
     gy = 0.5 * (blurred[:, 2:, 1:-1] - blurred[:, :-2, 1:-1])
     xs = np.arange(size)
     g_dot_p = gx * xs + gy * xs[:, None]
-    return np.stack([gx * gx, gx * gy, gy * gy, gx * g_dot_p, gy * g_dot_p],
-                    -1).reshape(len(origin), size * size, 5)
+    moments = np.empty((len(origin), 5, size, size))
+    for k, (a, b) in enumerate([(gx, gx), (gx, gy), (gy, gy), (gx, g_dot_p), (gy, g_dot_p)]):
+        np.multiply(a, b, out=moments[:, k])
+    return moments.reshape(len(origin), 5, size * size)
 
 
 def _saddle_steps(moments, origin, q, A_inv, lim, box_lo, box_hi, band_mm, image_size):
     """One step of the saddle fit for M corners at once: shifts (M, 2) px and whether each
     corner's normal matrix was well enough conditioned to solve (M,) bool.
 
-    ``moments`` (M, S * S, 5): ``_gradient_moments`` of squares with top-left pixels ``origin``
+    ``moments`` (M, 5, S * S): ``_gradient_moments`` of squares with top-left pixels ``origin``
     (M, 2); ``q`` (M, 2) the current estimates; ``A_inv`` (M, 2, 2) px -> board mm; ``lim``
     (M, 2) the window's half-extents in mm; ``box_lo``, ``box_hi`` (M, 2) its bounding box (end
     exclusive) in px.
     """
-    size = math.isqrt(moments.shape[1])
+    size = math.isqrt(moments.shape[2])
     width, height = image_size
     pixels = origin[:, :, None] + np.arange(size)  # (M, 2, S): x then y coordinates
     dx, dy = pixels[:, 0] - q[:, :1], pixels[:, 1] - q[:, 1:]  # (M, S) offsets from q
@@ -269,9 +291,10 @@ def _saddle_steps(moments, origin, q, A_inv, lim, box_lo, box_hi, band_mm, image
             & (np.abs(dy) <= mirrored[:, 1:]))
     use = in_x[:, None, :] & in_y[:, :, None]  # (M, S rows of y, S columns of x)
     # The weight's phases, pi/2 at the window's sides: theta = pi/2 (A_inv p) / lim is a sum of
-    # a term in x and one in y, so their cosines come from (M, S) cosines and sines of each.
+    # a term in x and one in y, so cos(theta) is a product of (M, S, 2) [cos, -sin] of the y
+    # terms with (M, 2, S) [cos, sin] of the x terms: one pass over the window per axis.
     scale = 0.5 * np.pi * A_inv / lim[:, :, None]
-    w = np.ones(use.shape)
+    cosines = []
     near_edges = np.zeros(use.shape, bool)  # within band_mm of either edge line
     for axis in range(2):
         tx, ty = scale[:, axis, :1] * dx, scale[:, axis, 1:] * dy
@@ -279,12 +302,15 @@ def _saddle_steps(moments, origin, q, A_inv, lim, box_lo, box_hi, band_mm, image
         use &= theta <= 0.5 * np.pi
         if band_mm is not None:
             near_edges |= theta < 0.5 * np.pi * band_mm / lim[:, axis, None, None]
-        w *= (np.cos(tx)[:, None, :] * np.cos(ty)[:, :, None]
-              - np.sin(tx)[:, None, :] * np.sin(ty)[:, :, None]) ** 2
+        cosines.append(np.stack([np.cos(ty), -np.sin(ty)], -1) @ np.stack([np.cos(tx),
+                                                                             np.sin(tx)], 1))
     if band_mm is not None:
         use &= near_edges
+    w = cosines[0]
+    w *= cosines[1]
+    w *= w
     w *= use
-    sums = np.matmul(w.reshape(len(q), 1, -1), moments)[:, 0]  # (M, 5)
+    sums = (moments @ w.reshape(len(q), -1, 1))[..., 0]  # (M, 5)
     normal = sums[:, [0, 1, 1, 2]].reshape(-1, 2, 2)
     # sum w g g^T (p - q), the pixel p relative to the square's top-left.
     rhs = sums[:, 3:] - (normal @ (q - origin)[:, :, None])[..., 0]

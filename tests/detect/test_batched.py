@@ -1,0 +1,125 @@
+"""The batched measurements (all discs, all corners at once) against a plain computation of one
+feature at a time, straight from their definitions on the whole image: equal to 1e-6 px.
+
+Images: a board texture warped by a homography into 640 x 480 (the views need not be a camera's;
+only the arithmetic is compared).
+"""
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from stereo_bench.core.patterns import AsymmetricCircles, Checkerboard, SymmetricCircles
+from stereo_bench.detect import discs
+from stereo_bench.detect.boards import _find_circle_grid, _SearchImage
+from stereo_bench.detect.saddle import (_gradient_moments, _saddle_steps, local_affines,
+                                        nearest_mm)
+
+BOUND_PX = 1e-6
+H = (np.array([[0.9, 0.2, 60.0], [-0.12, 0.85, 90.0], [0.0, 0.0, 1.0]])
+     @ np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [4e-4, 2e-4, 1.0]]))
+
+
+def warped(pattern, px_per_mm):
+    """The board's texture through ``H`` into a 640 x 480 8-bit image, and the map board mm ->
+    image px."""
+    texture = cv2.GaussianBlur(pattern.texture(px_per_mm).astype(np.float32), (0, 0), 1.0)
+    image = cv2.warpPerspective(texture, H, (640, 480), flags=cv2.INTER_LINEAR, borderValue=110)
+
+    def to_image(xy_mm):
+        texel = (xy_mm - pattern.texture_origin_mm) * px_per_mm - 0.5
+        return cv2.perspectiveTransform(texel.reshape(-1, 1, 2), H).reshape(-1, 2)
+    return np.rint(image).astype(np.uint8), to_image
+
+
+def disc_one_by_one(gray, centre, A, r_disc, r_outer, room, edge_lo, edge_hi, iterations=3):
+    """One disc's darkness centroid as ``_measure_discs`` defines it, on a meshgrid of its
+    window with lstsq on the ring's pixels (for a disc well inside the image)."""
+    A_inv, r_inner = np.linalg.inv(A), 1.25 * r_disc
+    reach = r_outer * np.linalg.norm(A, 2)
+    for _ in range(iterations):
+        (x0, y0), (x1, y1) = np.floor(centre - reach).astype(int), np.ceil(centre + reach) + 1
+        ys, xs = np.mgrid[y0:int(y1), x0:int(x1)]
+        offset = np.stack([xs - centre[0], ys - centre[1]], -1)
+        board = offset @ A_inv.T
+        radius2 = (board**2).sum(-1)
+        values = gray[y0:int(y1), x0:int(x1)].astype(float)
+        ring = ((radius2 >= r_inner**2) & (radius2 <= r_outer**2)
+                & np.all((board >= edge_lo) & (board <= edge_hi), -1))
+        disc = (radius2 < r_inner**2) & np.all(np.abs(board) <= room, -1)
+        design = np.column_stack([np.ones(ring.sum()), offset[ring]])
+        plane = np.linalg.lstsq(design, values[ring], rcond=None)[0]
+        weight = plane[0] + offset[disc] @ plane[1:] - values[disc]
+        centre = centre + weight @ offset[disc] / weight.sum()
+    return centre
+
+
+@pytest.mark.parametrize("pattern", [SymmetricCircles(), AsymmetricCircles()])
+def test_discs_measured_together_equal_discs_measured_one_by_one(pattern, monkeypatch):
+    gray, _ = warped(pattern, 1.8)
+    points, affines = _find_circle_grid(_SearchImage.of(gray), pattern)
+    centres, diameters = discs._measure_discs(gray, points, affines, pattern, pattern.diameter_mm)
+    assert np.isfinite(centres).all() and np.isfinite(diameters).all()
+    # Every disc in a batch of its own (windows of their own size): the same numbers.
+    monkeypatch.setattr(discs, "_BATCH_PX", 1)
+    alone = discs._measure_discs(gray, points, affines, pattern, pattern.diameter_mm)
+    assert np.abs(alone[0] - centres).max() < BOUND_PX and np.abs(alone[1] - diameters).max() < 1e-9
+    object_xy = pattern.object_points()[:, :2]
+    lo, hi = pattern.outline_mm()[0], pattern.outline_mm()[2]
+    for i, A in enumerate(affines):
+        guard = discs.DISC_GUARD_PX * np.linalg.norm(np.linalg.inv(A), axis=1)
+        reference = disc_one_by_one(
+            gray, points[i], A, pattern.diameter_mm / 2, 0.5 * nearest_mm(object_xy),
+            np.minimum(object_xy[i] - lo, hi - object_xy[i]) - guard,
+            lo + guard - object_xy[i], hi - guard - object_xy[i])
+        assert np.abs(centres[i] - reference).max() < BOUND_PX, i
+
+
+def saddle_step_one_by_one(gradient, q, A_inv, lim, box_lo, box_hi, band_mm):
+    """One corner's step of the Förstner fit as ``refine_saddles`` defines it, pixel by pixel
+    over its window, with ``gradient`` (2, H, W) of the whole image blurred."""
+    height, width = gradient.shape[1:]
+    ys, xs = np.mgrid[box_lo[1]:box_hi[1], box_lo[0]:box_hi[0]]
+    p = np.stack([xs, ys], -1).reshape(-1, 2).astype(float)
+    theta = 0.5 * np.pi * ((p - q) @ A_inv.T) / lim
+    use = (np.all(np.abs(p - q) <= np.minimum(q, [width - 1, height - 1] - q), axis=1)
+           & np.all(np.abs(theta) <= 0.5 * np.pi, axis=1))
+    if band_mm is not None:
+        use &= np.any(np.abs(theta) < 0.5 * np.pi * band_mm / lim, axis=1)
+    w = np.prod(np.cos(theta) ** 2, axis=1) * use
+    g = gradient[:, ys.ravel(), xs.ravel()].T
+    normal = (w[:, None] * g).T @ g
+    rhs = (w[:, None] * g).T @ (g * (p - q)).sum(1)
+    return np.linalg.solve(normal, rhs)
+
+
+@pytest.mark.parametrize("band_mm", [None, 2.0])
+def test_saddle_steps_of_all_corners_equal_one_corner_at_a_time(band_mm):
+    pattern, sigma = Checkerboard(), 1.2
+    gray, to_image = warped(pattern, 1.8)
+    object_xy = pattern.object_points()[:, :2]
+    truth = to_image(object_xy)
+    start = truth + np.random.default_rng(1).uniform(-0.5, 0.5, truth.shape)
+    A = local_affines(object_xy, truth, 1.5 * pattern.square_mm)[0]
+    lim = np.full((len(A), 2), 0.4 * pattern.square_mm)
+    half = np.einsum("mij,mj->mi", np.abs(A), lim)
+    box_lo = np.floor(start - half).astype(int)
+    box_hi = np.ceil(start + half).astype(int) + 1
+    assert box_lo.min() >= 1 and np.all(box_hi <= [639, 479])
+    origin = box_lo - 3
+    size = int((box_hi - origin).max()) + 3
+    shift, solvable = _saddle_steps(_gradient_moments(gray, origin, size, sigma), origin, start,
+                                    np.linalg.inv(A), lim, box_lo, box_hi, band_mm, (640, 480))
+    assert solvable.all()
+    blurred = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), sigma).astype(float)
+    gradient = np.zeros((2,) + gray.shape)
+    gradient[0, :, 1:-1] = 0.5 * (blurred[:, 2:] - blurred[:, :-2])
+    gradient[1, 1:-1] = 0.5 * (blurred[2:] - blurred[:-2])
+    for m in range(len(A)):
+        reference = saddle_step_one_by_one(gradient, start[m], np.linalg.inv(A[m]), lim[m],
+                                           box_lo[m], box_hi[m], band_mm)
+        assert math.dist(shift[m], reference) < BOUND_PX, m
+    # The step goes most of the way to the corner from half a pixel off.
+    assert np.linalg.norm(start + shift - truth, axis=1).mean() < 0.1
