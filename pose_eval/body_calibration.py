@@ -47,7 +47,7 @@ from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 
 from stereo_bench.core.camera import Camera, project_with_jacobians
 from stereo_bench.core.poses import matrix_to_rodrigues, rodrigues_to_matrix
-from stereo_bench.multiview.triangulate import triangulate_dlt
+from stereo_bench.multiview.triangulate import triangulate_dlt, triangulate_robust
 
 MIN_PAIR_INLIERS = 30  # fewer joints agreeing on a pair's geometry do not join it
 MAX_PAIR_POINTS = 4000  # a pair's RANSAC sees at most this many joints (drawn reproducibly)
@@ -369,29 +369,81 @@ class _Bundle:
         return self._evaluate(x, True)[1]
 
 
+def _offset_bounds(problem: _Bundle, offsets: np.ndarray, n: int) -> tuple[np.ndarray, ...]:
+    """Bounds keeping each offset within half a frame beyond its stencil's middle interval: the
+    spline is not trusted further out, and the next round moves the stencil."""
+    lo, hi = np.full(n, -np.inf), np.full(n, np.inf)
+    if problem.estimate_offsets:
+        k = 6 * (problem.C - 1)
+        start = np.floor(offsets[1:])
+        lo[k:k + problem.C - 1] = start - 0.5
+        hi[k:k + problem.C - 1] = start + 1.5
+    return lo, hi
+
+
 def bundle_adjust(cameras, pixels, weights, points, offsets, estimate_offsets: bool,
-                  segments: np.ndarray, rounds: int = 2):
-    """(cameras, offsets (C,), points (T, N, 3), rms px over inliers, robust scale px) after
-    ``rounds`` of bundle adjustment (see the module notes); camera 0 holds the gauge."""
+                  segments: np.ndarray, max_rounds: int = 6):
+    """(cameras, offsets (C,), points (T, N, 3), rms px over inliers, robust scale px) of the
+    bundle adjustment (see the module notes); camera 0 holds the gauge. Rounds rebuild the
+    stencils until no offset leaves its frame interval (one round when offsets are fixed)."""
     scale_px = None
-    for _ in range(rounds):
+    for _ in range(max_rounds if estimate_offsets else 1):
         problem = _Bundle(cameras, pixels, weights, points, offsets, estimate_offsets, segments)
         x0 = problem.pack(cameras, offsets, points)
         r0 = problem.residuals(x0)
         if scale_px is None:  # the soft L1 scale: 3 robust deviations of the start's residuals
             scale_px = max(0.5, 3 * 1.4826 * float(np.median(np.abs(r0))))
         sol = least_squares(problem.residuals, x0, jac=problem.jacobian, method="trf",
+                            bounds=_offset_bounds(problem, offsets, len(x0)),
                             loss="soft_l1", f_scale=scale_px, x_scale="jac",
                             tr_solver="lsmr", max_nfev=50, xtol=1e-10, ftol=1e-8)
+        before = np.floor(offsets)
         cameras, offsets, P = problem.unpack(sol.x)
         points = np.full(points.shape, np.nan)
         points[problem.index >= 0] = P
         r = sol.fun.reshape(-1, 2)
         scale_px = max(0.5, 3 * 1.4826 * float(np.median(np.abs(sol.fun))))
+        if np.array_equal(np.floor(offsets), before):
+            break
     e = np.linalg.norm(r, axis=1)
     inl = e < 2 * scale_px
     rms = float(np.sqrt(np.mean(e[inl] ** 2))) if inl.any() else float("nan")
     return cameras, offsets, points, rms, scale_px
+
+
+def _soft_l1(e: np.ndarray, scale: float) -> np.ndarray:
+    return 2 * (np.sqrt(1 + (e / scale) ** 2) - 1)
+
+
+def scan_offset(camera: Camera, pixels: np.ndarray, weights: np.ndarray, points: np.ndarray,
+                centre: float, scale_px: float, segments: np.ndarray,
+                reach: float = 1.5, step: float = 0.02) -> float:
+    """The clock offset (frames) of ``camera`` that best fits its keypoints (T, N, 2) to the
+    joints' tracks ``points`` (T, N, 3) at camera 0's frames, triangulated without it: the
+    least soft-L1 reprojection cost over offsets within ``reach`` frames of ``centre``, the
+    tracks interpolated by the Catmull-Rom spline. A scan, not a descent: the cost of a moving
+    body against time has a minimum per stride, and the whole-frame start may be one off."""
+    T = len(points)
+    f, n = np.nonzero(np.all(np.isfinite(pixels), -1) & (weights > 0))
+    best, best_cost = centre, np.inf
+    for d in np.arange(centre - reach, centre + reach + step / 2, step):
+        tau = f + d
+        i = np.floor(tau).astype(int)
+        frames = i[:, None] + np.arange(-1, 3)
+        ok = np.all((frames >= 0) & (frames < T), 1)
+        ok[ok] &= np.all(segments[frames[ok]] == segments[f[ok]][:, None], 1)
+        w, _ = catmull_rom(tau[ok] - i[ok])
+        X = np.einsum("mk,mkd->md", w, points[frames[ok], n[ok][:, None]])
+        good = np.all(np.isfinite(X), -1)
+        if np.count_nonzero(good) < MIN_PAIR_INLIERS:
+            continue
+        e = np.linalg.norm(camera.project(X[good]) - pixels[f[ok][good], n[ok][good]], axis=-1)
+        # A mean over the joints it sees, so that offsets whose stencils lose a few frames at
+        # the ends are not favoured or penalised by the count.
+        cost = float(np.mean(weights[f[ok][good], n[ok][good]] * _soft_l1(e, scale_px)))
+        if cost < best_cost:
+            best, best_cost = float(d), cost
+    return best
 
 
 # ----------------------------------------------------------------------------------------------
@@ -511,17 +563,28 @@ def calibrate_from_body(cameras: list[Camera], pixels: np.ndarray, confidence: n
     order, parent = spanning_tree(pairs, C, names)
     posed, shifts = initial_rig(cameras, pixels, x, pairs, order, parent, threshold, segments)
     sync = _synchronised(pixels, shifts, segments)
-    points = triangulate_dlt(posed, sync)
-    # Points far off their views (an outlier detection drags a two-view DLT) start the bundle
-    # adjustment as missing rather than as a wrong start.
+    # Outlier views are left out of each joint's start (3+ views); a joint whose views still
+    # disagree by far (two views, one an outlier) starts the bundle adjustment as missing.
+    points, inliers = triangulate_robust(posed, sync, threshold_px=3 * threshold_px,
+                                         refine=False)
     err = np.stack([np.linalg.norm(cam.project(points.reshape(-1, 3)).reshape(T, N, 2) - sync[c],
                                    axis=-1) for c, cam in enumerate(posed)])
-    bad = np.nanmax(np.where(np.isfinite(err), err, 0), axis=0) > 10 * threshold_px
-    points[bad] = np.nan
+    err = np.where(inliers & np.isfinite(err), err, 0.0)
+    points[err.max(axis=0) > 10 * threshold_px] = np.nan
     weights = np.where(np.isfinite(pixels[..., 0]), confidence, 0.0)
-    estimate = max_offset_frames > 0
-    posed, offsets, points, rms, _ = bundle_adjust(posed, pixels, weights, points,
-                                                   shifts.astype(float), estimate, segments)
+    posed, offsets, points, rms, scale_px = bundle_adjust(posed, pixels, weights, points,
+                                                          shifts.astype(float), False, segments)
+    if max_offset_frames > 0:
+        # Each clock to a fraction of a frame against the others' tracks, then all together.
+        for c in range(1, C):
+            others = [k for k in range(C) if k != c]
+            alone = (triangulate_robust([posed[k] for k in others], sync[others],
+                                        threshold_px=3 * threshold_px, refine=False)[0]
+                     if len(others) >= 2 else points)
+            offsets[c] = scan_offset(posed[c], pixels[c], weights[c], alone, shifts[c],
+                                     scale_px / 3, segments)
+        posed, offsets, points, rms, _ = bundle_adjust(posed, pixels, weights, points, offsets,
+                                                       True, segments)
     R, t, how, _ = floor_frame(points, skeleton, posed[0])
     if scale.baseline_mm is not None:
         a, b = (names.index(n) for n in scale.cameras)

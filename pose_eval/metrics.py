@@ -31,6 +31,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from stereo_bench.multiview.bundle import aligned_rig_errors
+
 from .motion import JOINT_NAMES
 
 
@@ -112,3 +114,29 @@ def pose_metrics(estimate, truth) -> dict:
         "missing_joints": int(np.isnan(e).sum()),
         "total_joints": int(e.size),
     }
+
+
+def studio_errors(estimate, truth, offsets_frames, true_offsets_frames, up, true_up) -> dict:
+    """A studio calibrated without a board against its truth (pose_eval.body_calibration).
+
+    estimate, truth: cameras (cam_from_world) in any two worlds; offsets (C,): each camera's
+    clock ahead of camera 0's, frames; up, true_up: the world's vertical in each world. After
+    the similarity that best maps the estimated camera centres onto the true ones: the cameras'
+    rotation (deg) and centre (mm) errors, mean and worst over cameras; the scale error, % (the
+    estimate's size over the truth's, minus 1: what the known quantity got wrong); the worst
+    clock error, frames; the vertical's error, deg (camera 0's view of it, so no alignment
+    enters).
+    """
+    e = aligned_rig_errors(estimate, truth)
+    offsets = np.asarray(offsets_frames, float) - offsets_frames[0]
+    true_offsets = np.asarray(true_offsets_frames, float) - true_offsets_frames[0]
+    up_c0 = estimate[0].R @ np.asarray(up, float)
+    true_up_c0 = truth[0].R @ np.asarray(true_up, float)
+    cos = np.dot(up_c0, true_up_c0) / np.linalg.norm(up_c0) / np.linalg.norm(true_up_c0)
+    return {"rotation_deg": float(np.mean(e["rotation_deg"])),
+            "rotation_deg_max": float(np.max(e["rotation_deg"])),
+            "centre_mm": float(np.mean(e["centre_mm"])),
+            "centre_mm_max": float(np.max(e["centre_mm"])),
+            "scale_pct": float(100 * (1 / e["scale"] - 1)),
+            "offset_frames": float(np.max(np.abs(offsets - true_offsets))),
+            "vertical_deg": float(np.degrees(np.arccos(np.clip(cos, -1, 1))))}

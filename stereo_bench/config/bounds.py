@@ -47,6 +47,9 @@ MAX_DISTORTION = 1e4
 
 MAX_DISTANCE_MM = 1e6
 
+#: A camera's clock offset, ms: a minute covers a consumer camera started by hand.
+MAX_TIME_OFFSET_MS = 60_000.0
+
 
 MAX_FILE_BYTES = 1 << 20
 

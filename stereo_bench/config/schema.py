@@ -20,7 +20,7 @@ from ..core.poses import look_at_rotation, matrix_to_rodrigues
 from ..core.files import is_safe_name
 from .bounds import (ConfigError, MAX_BLUR_PX, MAX_BOARD_MM, MAX_CAMERAS, MAX_DISTANCE_MM,
                      MAX_DISTORTION, MAX_FOCAL_PX, MAX_FRAMES, MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE,
-                     MAX_PATTERN_COUNT, MAX_PIXEL_ASPECT, MAX_SKEW_PX)
+                     MAX_PATTERN_COUNT, MAX_PIXEL_ASPECT, MAX_SKEW_PX, MAX_TIME_OFFSET_MS)
 from .yaml_reader import load_yaml
 
 
@@ -122,6 +122,10 @@ class CameraConfig(LensConfig):
     position_mm: Position = (0.0, 0.0, 0.0)
     look_at_mm: Position = (0.0, 0.0, 1000.0)
     up: Vec3 = (0.0, -1.0, 0.0)
+    time_offset_ms: Float = Field(0.0, ge=-MAX_TIME_OFFSET_MS, le=MAX_TIME_OFFSET_MS,
+                                  description="how far this camera's clock runs ahead of the "
+                                              "rig's: its frame f is exposed at f / fps + offset "
+                                              "(unsynchronised cameras; bodies only)")
 
     @model_validator(mode="after")
     def _geometry(self):
@@ -162,6 +166,7 @@ class StudioConfig(_Strict):
     look_at_mm: Position = (0.0, 0.0, 1000.0)
     lenses: list[LensConfig] = Field(min_length=1, max_length=MAX_CAMERAS)
     names: list[Name] | None = None
+    time_offset_ms: list[Float] | None = None
 
     @model_validator(mode="after")
     def _layout(self):
@@ -176,6 +181,9 @@ class StudioConfig(_Strict):
         if self.names is not None and len(self.names) != self.count:
             raise ValueError(f"names: expected {self.count} names (count), got "
                              f"{len(self.names)}")
+        if self.time_offset_ms is not None and len(self.time_offset_ms) != self.count:
+            raise ValueError(f"time_offset_ms: expected {self.count} offsets (count), got "
+                             f"{len(self.time_offset_ms)}")
         if max(abs(h) for h in self.height_mm) > 1e5:
             raise ValueError("height_mm: expected heights within 100 m")
         return self
@@ -204,7 +212,9 @@ class StudioConfig(_Strict):
         names = self.names or [f"cam{i + 1}" for i in range(self.count)]
         return [{**self.lenses[i % len(self.lenses)].model_dump(), "name": names[i],
                  "position_mm": tuple(float(v) for v in p), "look_at_mm": self.look_at_mm,
-                 "up": (0.0, 0.0, 1.0)} for i, p in enumerate(self.positions())]
+                 "up": (0.0, 0.0, 1.0),
+                 "time_offset_ms": self.time_offset_ms[i] if self.time_offset_ms else 0.0}
+                for i, p in enumerate(self.positions())]
 
 
 def _check_override(field: dataclasses.Field, value):
@@ -619,6 +629,10 @@ class RigConfig(_Strict):
 
     def cameras_true(self) -> list[Camera]:
         return [c.camera() for c in self.cameras]
+
+    def time_offsets_ms(self) -> np.ndarray:
+        """(C,) each camera's clock offset, ms (cameras[i].time_offset_ms)."""
+        return np.array([c.time_offset_ms for c in self.cameras])
 
 
 def describe(err: ValidationError, source: str, what: str = "rig configuration") -> str:

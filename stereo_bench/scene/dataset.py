@@ -80,7 +80,10 @@ def dataset_fingerprint(cfg: RigConfig) -> str:
     """What a dataset depends on: the resolved configuration (seed included) and the format,
     and for the Blender backend the worker's packages; not the calibration settings, which
     only the later stages read."""
-    config = cfg.model_dump(mode="json", exclude={"calibration", "renderer"})
+    # Nor the cameras' clock offsets, which a board dataset refuses (write_dataset): datasets
+    # keep the fingerprints they had before cameras had clocks.
+    config = cfg.model_dump(mode="json", exclude={"calibration": True, "renderer": True,
+                                                  "cameras": {"__all__": {"time_offset_ms"}}})
     parts = ["dataset", SCHEMA_VERSION, config]
     if cfg.renderer.kind == "blender":
         # The analytic renderer's datasets keep the fingerprints they had before there was a
@@ -130,6 +133,13 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None) -> "Dataset":
     ``progress(done, total)`` is called after each image.
     """
     paths = DatasetPaths(Path(out))
+    shifted = [c.name for c in cfg.cameras if c.time_offset_ms != 0]
+    if shifted:
+        # A board session's truth is one board pose per frame, shared by every camera (the
+        # rig stage pairs views by frame); cameras at other instants would need one per camera.
+        raise UnusableRigError(f"rig {cfg.name!r}: cameras {shifted} have a time_offset_ms; the "
+                               f"board renderers expose every camera at the same instant (the "
+                               f"offsets apply to bodies: pose-eval, calibration from the body)")
     try:
         rig = Rig.from_config(cfg)
     except ValueError as e:  # a camera model or rig geometry the renderer cannot use

@@ -1,0 +1,132 @@
+"""A calibration from the body in a studio of known truth, graded against that truth.
+
+People walk around the studio's centre on circles of different radii (so that they pass one
+another without meeting), each camera sees them at its own clock (the rig file's
+``time_offset_ms``: pose_eval.scene.seen_by_clocks), a detector model draws their keypoints
+(Gaussian, or a fitted detector's error), and pose_eval.body_calibration calibrates the studio
+from those keypoints alone, the intrinsics being the true ones (a studio's lenses are
+calibrated once, its extrinsics every session). The result is graded by
+pose_eval.metrics.studio_errors, and placed in the true world (its camera 0 at the true
+camera 0) for pose-eval to triangulate through, beside the board calibrations.
+
+The keypoints of one session never serve the pose evaluation: the people walk in the
+calibration session, and pose-eval's body moves in its own frames afterwards.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from stereo_bench.core.camera import Camera
+from stereo_bench.run.exchange import rebased
+
+from .body import NUM_JOINTS, forward, to_mm
+from .body_calibration import BodyCalibration, Scale, Skeleton, calibrate_from_body
+from .metrics import studio_errors
+from .motion import FOOT_JOINTS, JOINT
+from .observe import Keypoints
+from .scene import Person, in_true_world, seen_by_clocks
+
+WALK_RADII_M = (1.5, 0.8, 2.1, 0.4)  # person k walks a circle of radius WALK_RADII_M[k]
+MAX_PEOPLE = len(WALK_RADII_M)
+FPS = 30.0
+SCALES = ("height", "baseline")
+
+#: Keypoints of ``scene`` seen by ``cameras``, drawn with ``rng`` (observe or observe_fitted).
+Draw = Callable[[list[Camera], object, np.random.Generator], Keypoints]
+
+
+@dataclass(frozen=True)
+class Session:
+    """How the studio is calibrated from the body: ``people`` walking for ``frames`` frames at
+    30 fps, the scale from their ``height`` or the ``baseline`` of cameras 0 and 1 (both known
+    exactly: the stand-in body's stature, the true distance), clocks searched up to
+    ``max_offset_frames`` (0: the cameras are taken as synchronised)."""
+
+    people: int = 1
+    frames: int = 300
+    scale: str = "height"
+    max_offset_frames: int = 10
+
+    def __post_init__(self):
+        if not 1 <= self.people <= MAX_PEOPLE:
+            raise ValueError(f"people: expected 1..{MAX_PEOPLE}, got {self.people}")
+        if not 10 <= self.frames <= 10_000:
+            raise ValueError(f"frames: expected 10..10000, got {self.frames}")
+        if self.scale not in SCALES:
+            raise ValueError(f"scale: expected one of {', '.join(SCALES)}, got {self.scale!r}")
+        if not 0 <= self.max_offset_frames <= 300:
+            raise ValueError(f"max_offset_frames: expected 0..300, got {self.max_offset_frames}")
+
+
+def walkers(people: int, seed: int) -> list[Person]:
+    """The session's people: walk_circle, each with its own seed (pace, stride, phase)."""
+    return [Person("walk_circle", seed * MAX_PEOPLE + k, (("radius", WALK_RADII_M[k]),))
+            for k in range(people)]
+
+
+def smpl_skeleton(model, people: int) -> tuple[Skeleton, float]:
+    """(the tracks' feet and heads for ``people`` SMPL bodies side by side, the body's stature
+    mm). stature_per_head: the stature over the head joint's height above the stance plane at
+    rest, that plane lying at the mean height of the foot joints (body_calibration.stances
+    takes the same share of each foot joint's frames)."""
+    joints, vertices = forward(model, np.zeros((1, 69)), np.zeros((1, 3)))
+    joints, vertices = to_mm(joints[0]), to_mm(vertices[0])
+    floor = vertices[:, 1].min()
+    stature = float(vertices[:, 1].max() - floor)
+    stance = float(np.mean(joints[list(FOOT_JOINTS), 1]))
+    head = float(joints[JOINT["head"], 1])
+    feet = tuple(j + NUM_JOINTS * p for p in range(people) for j in FOOT_JOINTS)
+    heads = tuple(JOINT["head"] + NUM_JOINTS * p for p in range(people))
+    return Skeleton(feet, heads, stature / (head - stance)), stature
+
+
+def side_by_side(parts: list[Keypoints]) -> Keypoints:
+    """One camera's keypoints of several people as one set of tracks (N = people x 24)."""
+    def cat(name):
+        values = [getattr(k, name) for k in parts]
+        return None if any(v is None for v in values) else np.concatenate(values, axis=2)
+
+    return Keypoints(cat("pixels"), cat("confidence"), cat("occluded"), cat("outlier"))
+
+
+def session_keypoints(truth: list[Camera], offsets_ms, session: Session, model, draw: Draw,
+                      seed) -> tuple[Keypoints, list[list]]:
+    """(keypoints (C, T, people x 24) of the session's people seen by the true cameras at their
+    clocks, the [camera][person] scenes). seed: a sequence of ints, the trial's; each camera
+    and person draws from its own stream."""
+    people = walkers(session.people, int(np.asarray(seed).ravel()[-1]))
+    views = seen_by_clocks(truth, people, session.frames, FPS, model, offsets_ms)
+    per_camera = []
+    for c, cam in enumerate(truth):
+        per_camera.append(side_by_side([
+            draw([cam], views[c][p], np.random.default_rng([*np.ravel(seed), c, p]))
+            for p in range(session.people)]))
+    return Keypoints(*(None if getattr(per_camera[0], k) is None else
+                       np.concatenate([getattr(kp, k) for kp in per_camera], axis=0)
+                       for k in ("pixels", "confidence", "occluded", "outlier"))), views
+
+
+def calibrate_session(truth: list[Camera], offsets_ms, session: Session, model, draw: Draw,
+                      seed) -> tuple[BodyCalibration, dict, list[Camera]]:
+    """(the calibration, its errors against the truth, its cameras in the true world) of one
+    session; ValueError if the method fails (named by its step)."""
+    keypoints, views = session_keypoints(truth, offsets_ms, session, model, draw, seed)
+    skeleton, stature = smpl_skeleton(model, session.people)
+    if session.scale == "height":
+        scale = Scale(height_mm=stature)
+    else:
+        scale = Scale(baseline_mm=float(np.linalg.norm(truth[0].center - truth[1].center)),
+                      cameras=(truth[0].name, truth[1].name))
+    result = calibrate_from_body(truth, keypoints.pixels, keypoints.confidence, skeleton, scale,
+                                 session.max_offset_frames)
+    true_offsets = np.asarray(offsets_ms, float) * FPS / 1000.0
+    true_up = views[0][0].world_from_body[0][:, 1]  # SMPL's up in the world: the floor's normal
+    errors = studio_errors(result.cameras, truth, result.offsets_frames, true_offsets,
+                           np.array([0.0, 0.0, 1.0]), true_up)
+    errors["rms_px"] = result.rms_px
+    errors["vertical_from_floor"] = float(result.vertical == "floor")
+    return result, errors, in_true_world(rebased(result.cameras), truth)
