@@ -18,18 +18,23 @@ person in a frame is one 3D point, seen by every camera that detected it):
 3. **Bundle adjustment** of the cameras' poses, their clock offsets to a fraction of a frame
    and every joint's 3D track, with a robust loss (soft L1, its scale from the residuals' MAD)
    on the reprojection error weighted by the keypoint's confidence. A camera whose clock is
-   offset sees a joint between two of camera 0's frames: the track is interpolated there by a
-   Catmull-Rom spline through four frames, whose derivative gives the offset's Jacobian
-   (Sibley et al. use the same device for rolling shutters; here it is per camera, not per
-   row). The analytic Jacobian is sparse and exact (tested against finite differences).
+   offset sees a joint between two of camera 0's frames, so with clocks to estimate each
+   track is a uniform cubic B-spline with a control point per frame (continuous-time
+   trajectories, as in Furgale et al., "Continuous-time batch estimation using temporal basis
+   functions", ICRA 2012), whose derivative gives the offset's Jacobian. Each clock starts
+   from a scan against the tracks the other cameras triangulate (a moving body's cost against
+   time has a minimum per stride, so a descent from a whole frame can stop in the wrong one).
+   The analytic Jacobian is sparse and exact (tested against finite differences).
 4. **The vertical** from the floor: the feet rest on it while they stand. Each foot joint's
    slowest third of frames are its stances; the plane through them (least squares, then
    without points beyond 3 robust deviations) is parallel to the floor, and its normal points
    up on the side of the heads. A crowd that never walks (feet at a few spots) gives no plane:
    the normal is then the mean direction from the feet to the heads, and ``vertical`` says so.
-5. **Scale** from one known quantity: one baseline between two cameras, or a person's height
-   (the head joint's median height above the stance plane while walking, times the body
-   model's ratio of stature to that height at rest).
+5. **Scale** from one known quantity: one baseline between two cameras, or the first person's
+   height. Height is read off rigid segments, not off the head's height over the floor, which
+   drops as the knees bend: the median length of each segment of a chain from the ankles to
+   the head (shin, thigh, pelvis to neck, neck to head), summed, times the body model's ratio
+   of stature to that chain at rest.
 
 The result is the studio in a floor frame: z up, x along camera 0's view projected on the
 floor, the origin on the stance plane below the people's mean position; lengths in mm.
@@ -78,12 +83,14 @@ class Scale:
 
 @dataclass(frozen=True)
 class Skeleton:
-    """Which tracks are what: the joint indices of feet and heads (per person, flattened over
-    people), and the body's stature over its head joint's height above its stance at rest."""
+    """Which tracks are what: the joint indices of feet and heads (every person's, tracks side
+    by side), the first person's height chain as (joint, joint, weight) segments, and the
+    body's stature over that chain's weighted length at rest."""
 
     feet: tuple[int, ...]
     heads: tuple[int, ...]
-    stature_per_head: float
+    chain: tuple[tuple[int, int, float], ...]
+    stature_per_chain: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -243,21 +250,33 @@ def initial_rig(cameras: list[Camera], pixels: np.ndarray, x: np.ndarray, pairs:
 # 3. Bundle adjustment
 # ----------------------------------------------------------------------------------------------
 
-def catmull_rom(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Weights (M, 4) of the points at frames i-1, i, i+1, i+2 for the position at i + u, and
-    their derivatives in u (M, 4): the Catmull-Rom spline, which passes through every frame."""
+def cubic_bspline(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weights (M, 4) of the control points at frames i-1, i, i+1, i+2 for the track at i + u,
+    and their derivatives in u (M, 4): the uniform cubic B-spline. Unlike an interpolating
+    spline its weights' sum of squares hardly depends on u (0.46 to 0.5), so noisy control
+    points do not make half frames look better fitted than whole ones: a clock offset read off
+    them is not pulled towards half frames."""
     u = np.asarray(u, dtype=np.float64)[:, None]
     u2, u3 = u * u, u * u * u
-    w = np.hstack([(-u3 + 2 * u2 - u) / 2, (3 * u3 - 5 * u2 + 2) / 2,
-                   (-3 * u3 + 4 * u2 + u) / 2, (u3 - u2) / 2])
-    dw = np.hstack([(-3 * u2 + 4 * u - 1) / 2, (9 * u2 - 10 * u) / 2,
-                    (-9 * u2 + 8 * u + 1) / 2, (3 * u2 - 2 * u) / 2])
+    w = np.hstack([(1 - u) ** 3, 3 * u3 - 6 * u2 + 4, -3 * u3 + 3 * u2 + 3 * u + 1, u3]) / 6
+    dw = np.hstack([-3 * (1 - u) ** 2, 9 * u2 - 12 * u, -9 * u2 + 6 * u + 3, 3 * u2]) / 6
     return w, dw
+
+
+def on_frames(control: np.ndarray, segments: np.ndarray) -> np.ndarray:
+    """Tracks (T, N, 3) at the frames of the B-spline with control points ``control``
+    (T, N, 3): (P[f-1] + 4 P[f] + P[f+1]) / 6, NaN where a neighbour is missing."""
+    out = np.full(control.shape, np.nan)
+    same = (segments[:-2] == segments[1:-1]) & (segments[2:] == segments[1:-1])
+    mid = (control[:-2] + 4 * control[1:-1] + control[2:]) / 6
+    out[1:-1] = np.where(same[:, None, None], mid, np.nan)
+    return out
 
 
 class _Bundle:
     """The bundle adjustment's problem: parameters [poses of cameras 1.. (rvec, t) | offsets of
-    cameras 1.. (frames) if estimated | active points (3 each)]; residuals: the weighted
+    cameras 1.. (frames) if estimated | active points (3 each): the joints at camera 0's
+    frames, or with offsets the tracks' B-spline control points]; residuals: the weighted
     reprojection errors (px) of the observations whose spline stencil is all active points.
 
     Stencils are fixed when the problem is built (from the offsets then); an offset that moves
@@ -327,7 +346,7 @@ class _Bundle:
             if self.estimate_offsets:
                 # tau = f + offset; the stencil starts at frame f + base - 1.
                 u = offsets[c] - base
-                wts, dwts = catmull_rom(u)
+                wts, dwts = cubic_bspline(u)
                 Xs = P[stencil]  # (M, 4, 3)
                 X = np.einsum("mk,mkd->md", wts, Xs)
             else:
@@ -421,7 +440,7 @@ def scan_offset(camera: Camera, pixels: np.ndarray, weights: np.ndarray, points:
     """The clock offset (frames) of ``camera`` that best fits its keypoints (T, N, 2) to the
     joints' tracks ``points`` (T, N, 3) at camera 0's frames, triangulated without it: the
     least soft-L1 reprojection cost over offsets within ``reach`` frames of ``centre``, the
-    tracks interpolated by the Catmull-Rom spline. A scan, not a descent: the cost of a moving
+    tracks taken as the B-spline's control points. A scan, not a descent: the cost of a moving
     body against time has a minimum per stride, and the whole-frame start may be one off."""
     T = len(points)
     f, n = np.nonzero(np.all(np.isfinite(pixels), -1) & (weights > 0))
@@ -432,7 +451,7 @@ def scan_offset(camera: Camera, pixels: np.ndarray, weights: np.ndarray, points:
         frames = i[:, None] + np.arange(-1, 3)
         ok = np.all((frames >= 0) & (frames < T), 1)
         ok[ok] &= np.all(segments[frames[ok]] == segments[f[ok]][:, None], 1)
-        w, _ = catmull_rom(tau[ok] - i[ok])
+        w, _ = cubic_bspline(tau[ok] - i[ok])
         X = np.einsum("mk,mkd->md", w, points[frames[ok], n[ok][:, None]])
         good = np.all(np.isfinite(X), -1)
         if np.count_nonzero(good) < MIN_PAIR_INLIERS:
@@ -514,11 +533,18 @@ def floor_frame(points: np.ndarray, skeleton: Skeleton, camera0: Camera
     return R, -R @ origin, how, float(np.dot(centre, up))
 
 
-def head_height(points: np.ndarray, skeleton: Skeleton, R: np.ndarray, t: np.ndarray) -> float:
-    """The heads' median height above the stance plane (world frame z), in the points' units."""
-    heads = points[:, list(skeleton.heads)].reshape(-1, 3)
-    heads = heads[np.all(np.isfinite(heads), -1)]
-    return float(np.median(heads @ R[2] + t[2]))
+def chain_length(points: np.ndarray, skeleton: Skeleton) -> float:
+    """The height chain's weighted length, each segment's median over the frames (points'
+    units); ValueError if a segment was never reconstructed."""
+    total = 0.0
+    for a, b, weight in skeleton.chain:
+        d = np.linalg.norm(points[:, a] - points[:, b], axis=-1)
+        d = d[np.isfinite(d)]
+        if len(d) == 0:
+            raise ValueError(f"scale: the segment between tracks {a} and {b} of the height chain "
+                             f"was never reconstructed; give a baseline instead")
+        total += weight * float(np.median(d))
+    return total
 
 
 # ----------------------------------------------------------------------------------------------
@@ -583,14 +609,15 @@ def calibrate_from_body(cameras: list[Camera], pixels: np.ndarray, confidence: n
                      if len(others) >= 2 else points)
             offsets[c] = scan_offset(posed[c], pixels[c], weights[c], alone, shifts[c],
                                      scale_px / 3, segments)
-        posed, offsets, points, rms, _ = bundle_adjust(posed, pixels, weights, points, offsets,
-                                                       True, segments)
+        posed, offsets, control, rms, _ = bundle_adjust(posed, pixels, weights, points,
+                                                        offsets, True, segments)
+        points = on_frames(control, segments)
     R, t, how, _ = floor_frame(points, skeleton, posed[0])
     if scale.baseline_mm is not None:
         a, b = (names.index(n) for n in scale.cameras)
         s = scale.baseline_mm / np.linalg.norm(posed[a].center - posed[b].center)
     else:
-        s = scale.height_mm / (skeleton.stature_per_head * head_height(points, skeleton, R, t))
+        s = scale.height_mm / (skeleton.stature_per_chain * chain_length(points, skeleton))
     world = []
     for cam in posed:  # cam_from_world = cam_from_ref o ref_from_world, ref scaled by s
         Rc = cam.R @ R.T

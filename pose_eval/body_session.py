@@ -68,20 +68,23 @@ def walkers(people: int, seed: int) -> list[Person]:
             for k in range(people)]
 
 
+#: The height chain of an SMPL body (body_calibration.Skeleton): both legs at half weight.
+HEIGHT_CHAIN = tuple((JOINT[a], JOINT[b], w) for a, b, w in (
+    ("left_ankle", "left_knee", 0.5), ("left_knee", "left_hip", 0.5),
+    ("right_ankle", "right_knee", 0.5), ("right_knee", "right_hip", 0.5),
+    ("pelvis", "neck", 1.0), ("neck", "head", 1.0)))
+
+
 def smpl_skeleton(model, people: int) -> tuple[Skeleton, float]:
-    """(the tracks' feet and heads for ``people`` SMPL bodies side by side, the body's stature
-    mm). stature_per_head: the stature over the head joint's height above the stance plane at
-    rest, that plane lying at the mean height of the foot joints (body_calibration.stances
-    takes the same share of each foot joint's frames)."""
+    """(the tracks' feet, heads and height chain for ``people`` SMPL bodies side by side, the
+    body's stature mm, its lowest to its highest vertex at rest)."""
     joints, vertices = forward(model, np.zeros((1, 69)), np.zeros((1, 3)))
     joints, vertices = to_mm(joints[0]), to_mm(vertices[0])
-    floor = vertices[:, 1].min()
-    stature = float(vertices[:, 1].max() - floor)
-    stance = float(np.mean(joints[list(FOOT_JOINTS), 1]))
-    head = float(joints[JOINT["head"], 1])
+    stature = float(np.ptp(vertices[:, 1]))
+    rest = sum(w * np.linalg.norm(joints[a] - joints[b]) for a, b, w in HEIGHT_CHAIN)
     feet = tuple(j + NUM_JOINTS * p for p in range(people) for j in FOOT_JOINTS)
     heads = tuple(JOINT["head"] + NUM_JOINTS * p for p in range(people))
-    return Skeleton(feet, heads, stature / (head - stance)), stature
+    return Skeleton(feet, heads, HEIGHT_CHAIN, stature / rest), stature
 
 
 def side_by_side(parts: list[Keypoints]) -> Keypoints:
