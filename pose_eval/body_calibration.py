@@ -58,6 +58,11 @@ MIN_PAIR_INLIERS = 30  # fewer joints agreeing on a pair's geometry do not join 
 MAX_PAIR_POINTS = 4000  # a pair's RANSAC sees at most this many joints (drawn reproducibly)
 STANCE_SHARE = 1 / 3  # the slowest share of a foot joint's frames taken as its stances
 FLAT_SPREAD = 0.15  # stance points spread less than this (2nd over 1st extent) give no plane
+# The tracks' smoothness prior, per px of focal length: a control point's second difference d
+# (the first pair's baseline is the unit) costs SMOOTHING * f * d "px". A walking body's joints
+# accelerate by about 0.002 baselines per frame^2 (0.2 px here, against 1 px of keypoint noise
+# seen by several cameras); an unobserved control point is held by it.
+SMOOTHING = 0.1
 
 
 @dataclass(frozen=True)
@@ -291,7 +296,6 @@ class _Bundle:
         self.index = np.full((T, N), -1)
         self.index[active] = np.arange(np.count_nonzero(active))
         self.n_points = int(np.count_nonzero(active))
-        width = 4 if estimate_offsets else 1
         self.obs = []  # per camera: (uv (M, 2), w (M,), stencil point indices (M, width), base)
         for c in range(C):
             f, n = np.nonzero(np.all(np.isfinite(pixels[c]), -1) & (weights[c] > 0))
@@ -309,7 +313,19 @@ class _Bundle:
             keep = same & np.all(stencil >= 0, 1)
             self.obs.append((pixels[c][f[keep], n[keep]], weights[c][f[keep], n[keep]],
                              stencil[keep], i[keep] - f[keep]))
-        self.n_res = 2 * sum(len(o[0]) for o in self.obs)
+        self.n_obs = 2 * sum(len(o[0]) for o in self.obs)
+        # B-spline control points: a weak second-difference prior ties each to its neighbours,
+        # so that one few observations reach (a track's ends) cannot drift off unbounded.
+        triples = np.zeros((0, 3), dtype=int)
+        if estimate_offsets:
+            mid = np.arange(1, T - 1)
+            same = (segments[mid - 1] == segments[mid]) & (segments[mid + 1] == segments[mid])
+            idx = np.stack([self.index[mid - 1], self.index[mid], self.index[mid + 1]], -1)
+            ok = same[:, None] & np.all(idx >= 0, -1)  # (T-2, N)
+            triples = idx[ok]
+        self.triples = triples
+        self.smoothing = SMOOTHING * float(np.mean([[c.fx, c.fy] for c in cameras]))
+        self.n_res = self.n_obs + 3 * len(triples)
 
     def pack(self, cameras, offsets, points) -> np.ndarray:
         poses = [np.concatenate([cam.rvec, cam.tvec]) for cam in cameras[1:]]
@@ -374,6 +390,15 @@ class _Bundle:
                         2, 1).ravel())
                     vals.append((Jp * weights_k[:, k, None, None]).ravel())
             row += 2 * M
+        if len(self.triples):
+            a, b, c3 = (self.triples[:, k] for k in range(3))
+            res.append((self.smoothing * (P[a] - 2 * P[b] + P[c3])).ravel())
+            if jacobian:
+                r = row + np.arange(3 * len(a)).reshape(-1, 3)
+                for k, coef in ((a, 1.0), (b, -2.0), (c3, 1.0)):
+                    rows.append(r.ravel())
+                    cols.append((p0 + 3 * k[:, None] + np.arange(3)).ravel())
+                    vals.append(np.full(r.size, coef * self.smoothing))
         r = np.concatenate(res) if res else np.zeros(0)
         if not jacobian:
             return r
@@ -411,7 +436,7 @@ def bundle_adjust(cameras, pixels, weights, points, offsets, estimate_offsets: b
         x0 = problem.pack(cameras, offsets, points)
         r0 = problem.residuals(x0)
         if scale_px is None:  # the soft L1 scale: 3 robust deviations of the start's residuals
-            scale_px = max(0.5, 3 * 1.4826 * float(np.median(np.abs(r0))))
+            scale_px = max(0.5, 3 * 1.4826 * float(np.median(np.abs(r0[:problem.n_obs]))))
         sol = least_squares(problem.residuals, x0, jac=problem.jacobian, method="trf",
                             bounds=_offset_bounds(problem, offsets, len(x0)),
                             loss="soft_l1", f_scale=scale_px, x_scale="jac",
@@ -420,8 +445,8 @@ def bundle_adjust(cameras, pixels, weights, points, offsets, estimate_offsets: b
         cameras, offsets, P = problem.unpack(sol.x)
         points = np.full(points.shape, np.nan)
         points[problem.index >= 0] = P
-        r = sol.fun.reshape(-1, 2)
-        scale_px = max(0.5, 3 * 1.4826 * float(np.median(np.abs(sol.fun))))
+        r = sol.fun[:problem.n_obs].reshape(-1, 2)
+        scale_px = max(0.5, 3 * 1.4826 * float(np.median(np.abs(r))))
         if np.array_equal(np.floor(offsets), before):
             break
     e = np.linalg.norm(r, axis=1)

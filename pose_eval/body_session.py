@@ -27,7 +27,7 @@ from .body import NUM_JOINTS, forward, to_mm
 from .body_calibration import BodyCalibration, Scale, Skeleton, calibrate_from_body
 from .metrics import studio_errors
 from .motion import FOOT_JOINTS, JOINT
-from .observe import Keypoints
+from .observe import Keypoints, keypoints_at_clocks
 from .scene import Person, in_true_world, seen_by_clocks
 
 WALK_RADII_M = (1.5, 0.8, 2.1, 0.4)  # person k walks a circle of radius WALK_RADII_M[k]
@@ -87,30 +87,13 @@ def smpl_skeleton(model, people: int) -> tuple[Skeleton, float]:
     return Skeleton(feet, heads, HEIGHT_CHAIN, stature / rest), stature
 
 
-def side_by_side(parts: list[Keypoints]) -> Keypoints:
-    """One camera's keypoints of several people as one set of tracks (N = people x 24)."""
-    def cat(name):
-        values = [getattr(k, name) for k in parts]
-        return None if any(v is None for v in values) else np.concatenate(values, axis=2)
-
-    return Keypoints(cat("pixels"), cat("confidence"), cat("occluded"), cat("outlier"))
-
-
 def session_keypoints(truth: list[Camera], offsets_ms, session: Session, model, draw: Draw,
                       seed) -> tuple[Keypoints, list[list]]:
     """(keypoints (C, T, people x 24) of the session's people seen by the true cameras at their
-    clocks, the [camera][person] scenes). seed: a sequence of ints, the trial's; each camera
-    and person draws from its own stream."""
-    people = walkers(session.people, int(np.asarray(seed).ravel()[-1]))
+    clocks, the [camera][person] scenes). seed: the trial's sequence of ints."""
+    people = walkers(session.people, int(np.random.default_rng(seed).integers(2**31)))
     views = seen_by_clocks(truth, people, session.frames, FPS, model, offsets_ms)
-    per_camera = []
-    for c, cam in enumerate(truth):
-        per_camera.append(side_by_side([
-            draw([cam], views[c][p], np.random.default_rng([*np.ravel(seed), c, p]))
-            for p in range(session.people)]))
-    return Keypoints(*(None if getattr(per_camera[0], k) is None else
-                       np.concatenate([getattr(kp, k) for kp in per_camera], axis=0)
-                       for k in ("pixels", "confidence", "occluded", "outlier"))), views
+    return keypoints_at_clocks(truth, views, draw, seed), views
 
 
 def calibrate_session(truth: list[Camera], offsets_ms, session: Session, model, draw: Draw,

@@ -34,21 +34,25 @@ from stereo_bench.io.rundir import RunPaths, locked
 from stereo_bench.core.files import is_safe_name, write_json, write_text
 
 from .body import NUM_JOINTS, load_body_model
+from .body_session import SCALES, Session, calibrate_session
 from .fit import fit_smpl
 from .metrics import excess_mpjpe, pose_metrics
 from .motion import JOINT_NAMES, MOTIONS
 from .detector_fit import load_fit, observe_fitted
-from .observe import DetectorModel, observe, read_openpose, scene_occlusion, write_openpose
+from .observe import (DetectorModel, keypoints_at_clocks, observe, read_openpose,
+                      scene_occlusion, write_openpose)
 from .reconstruct import triangulate_joints
-from .report import (COST, FLOOR, STAGES, aggregate, headline_stage, markdown, plot_mpjpe,
-                     plot_skeleton)
-from .scene import in_true_world, make_scene, rig_axes, run_config, run_description
+from .report import (BODY, COST, FLOOR, STAGES, aggregate, body_summary, headline_stage,
+                     markdown, plot_mpjpe, plot_skeleton)
+from .scene import (Person, in_true_world, make_scene, rig_axes, run_config, run_description,
+                    seen_by_clocks)
 
 console = Console(stderr=True)
 NOISE_PX = 1.0
 MAX_NOISE_PX = 100.0
 MAX_DISTANCE_MM = 100_000.0  # 100 m: a person is then about 20 px tall through a 1000 px lens
 MIN_DETECTED = 0.5
+BODY_STREAM = 1  # the last entry of a calibration session's seeds ([seed, trial, 1])
 
 
 DEFAULT_RUN = "out/quickstart"
@@ -119,6 +123,22 @@ def build_parser() -> argparse.ArgumentParser:
                         "of synthetic ones (needs `stereo-bench blender-setup`; docs/photoreal.md)")
     p.add_argument("--render-samples", type=int, default=16,
                    help="Cycles samples per pixel of --rendered (default: %(default)s)")
+    p.add_argument("--body-calibration", action="store_true",
+                   help="also calibrate the studio from people walking in it, with no board "
+                        "(docs/body_calibration.md): their keypoints drawn like the evaluation's "
+                        "(Gaussian or --detector-model), each camera at its clock (the rig's "
+                        "time_offset_ms); reported as method 'body' beside the board methods, "
+                        "with its errors against the truth")
+    p.add_argument("--body-people", type=int, default=1,
+                   help="people walking in the calibration session (default: %(default)s)")
+    p.add_argument("--body-frames", type=int, default=300,
+                   help="frames of the calibration session at 30 fps (default: %(default)s)")
+    p.add_argument("--body-scale", choices=SCALES, default="height",
+                   help="the known quantity that makes it metric: the person's height or the "
+                        "baseline of cameras 0 and 1 (default: %(default)s)")
+    p.add_argument("--max-offset-frames", type=int, default=10,
+                   help="how far the cameras' clocks may disagree, whole frames; 0 takes them "
+                        "as synchronised (default: %(default)s)")
     p.add_argument("--robust", action="store_true",
                    help="reject outlier views while triangulating (needs 3+ cameras)")
     p.add_argument("--fit-smpl", action="store_true",
@@ -185,7 +205,7 @@ def _inputs(args) -> tuple[str, str, list[Trial]]:
 
 
 def _methods(args, trials: list[Trial]) -> list[str]:
-    if args.calib is None and not args.calibration:
+    if args.calib is None and not args.calibration and not args.body_calibration:
         raise ValueError("--calib: expected a method, gt or all (or --calibration FILE)")
     if args.calib in ("gt", None):
         return ["gt"]
@@ -234,6 +254,27 @@ def check_options(args) -> None:
     if args.distance_mm is not None:
         need(math.isfinite(args.distance_mm) and 0 < args.distance_mm <= MAX_DISTANCE_MM,
              "--distance-mm", f"a distance in (0, {MAX_DISTANCE_MM:g}] mm", args.distance_mm)
+    if args.body_calibration:
+        need(not (args.keypoints or args.rendered), "--body-calibration",
+             "keypoints drawn by a detector model (Gaussian or --detector-model); calibrate a "
+             "detector's own files with `calibrate-keypoints`",
+             "--keypoints" if args.keypoints else "--rendered")
+        need(args.run or args.rig, "--body-calibration", "the true cameras of --run or --rig",
+             "--capture" if args.capture else "--calibration")
+
+
+def body_session(args) -> Session | None:
+    """--body-* as a body_session.Session (None without --body-calibration)."""
+    if not args.body_calibration:
+        return None
+    try:
+        return Session(args.body_people, args.body_frames, args.body_scale,
+                       args.max_offset_frames)
+    except ValueError as e:
+        field, _, rest = str(e).partition(":")
+        option = {"people": "--body-people", "frames": "--body-frames",
+                  "max_offset_frames": "--max-offset-frames"}.get(field, field)
+        raise ValueError(f"{option}:{rest}") from None
 
 
 def _warnings(results: dict) -> list[str]:
@@ -374,8 +415,23 @@ def evaluate(args) -> tuple[dict, dict]:
     as_truth = not (args.run or args.rig or args.capture)
     imported = {} if as_truth else _imported(args, run_trials[0].truth)
     run_methods, methods = methods, methods + list(imported)
+    session = body_session(args)
+    methods += [BODY] if session is not None else []
+    offsets = _clock_offsets(args)
+    clocked = bool(np.any(offsets != 0)) if offsets is not None else False
+    if clocked and args.rendered:
+        raise ValueError(f"--rendered: {_source(args)} gives its cameras time_offset_ms; the "
+                         f"Blender body renders take every camera at the same instant")
     detector = DetectorModel(*(d if v is None else v for v, d in zip(noise, (NOISE_PX, 0.0, 0.0))),
                              occlusion=not args.no_occlusion)
+
+    def draw(cameras, scene, rng, occluded=None):
+        """Synthetic keypoints of ``scene`` in ``cameras``: the fitted detector's or Gaussian."""
+        if fitted is not None:
+            return observe_fitted(cameras, scene, fitted, rng, occluded)
+        return observe(cameras, scene, detector, rng, occluded)
+
+    body_errors = []
     n_trials = args.trials or len(run_trials)
     model = load_body_model(args.model_path)
     shown = "fitted" if args.fit_smpl else "triangulated"  # the stage shown and plotted
@@ -394,33 +450,40 @@ def evaluate(args) -> tuple[dict, dict]:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 try:
-                    scene = make_scene(truth, args.motion, args.frames, model=model,
-                                       distance_mm=args.distance_mm)
+                    views = (seen_by_clocks(truth, [Person(args.motion)], args.frames,
+                                            model=model, offsets_ms=offsets)
+                             if clocked else None)
+                    scene = (views[0][0] if clocked else
+                             make_scene(truth, args.motion, args.frames, model=model,
+                                        distance_mm=args.distance_mm))
                 except ValueError as e:  # a rig with no place for a body: name its file
                     raise ValueError(f"{_source(args)}: {e}") from None
             placement += [str(w.message) for w in caught if str(w.message) not in placement]
             # The fitted detector's figures differ for hidden joints: it always needs them.
-            occluded = (scene_occlusion(truth, scene) if detector.occlusion or fitted is not None
-                        else None)
+            occluded = (scene_occlusion(truth, scene) if (detector.occlusion or fitted is not None)
+                        and not clocked else None)
             rendered = (_rendered_keypoints(truth, scene, model, output_dir(args, rig), args)
                         if args.rendered else None)
-            scenes[key] = scene, occluded, rendered
-        scene, occluded, rendered = scenes[key]
+            scenes[key] = scene, occluded, rendered, views
+        scene, occluded, rendered, views = scenes[key]
         if rendered is not None:
             keypoints, detector_2d = rendered
         elif args.keypoints:
             keypoints = read_openpose(args.keypoints, truth, args.frames)
-        elif fitted is not None:
-            keypoints = observe_fitted(truth, scene, fitted, np.random.default_rng([args.seed, i]),
-                                       occluded)
+        elif clocked:  # each camera sees the body at its own clock, truth at camera 0's
+            keypoints = keypoints_at_clocks(truth, views, draw, [args.seed, i])
         else:
-            keypoints = observe(truth, scene, detector, np.random.default_rng([args.seed, i]),
-                                occluded)
+            keypoints = draw(truth, scene, np.random.default_rng([args.seed, i]), occluded)
         for k, v in keypoints.counts().items():
             detections[k] = detections.get(k, 0) + v
         under_two_views += keypoints.under_two_views().sum(axis=0)
         rigs = {**run_rigs(run_methods, run_trial),
                 **{m: _placed(cams, truth) for m, (cams, _) in imported.items()}}
+        if session is not None:
+            # Its own streams: the session's keypoint noise owes nothing to the evaluation's.
+            rigs[BODY], errors = _body_rig(truth, offsets, session, model, draw,
+                                           [args.seed, i, BODY_STREAM])
+            body_errors.append(errors)
         entries, joints = evaluate_trial(truth, rigs, keypoints, scene,
                                          args.robust, args.fit_smpl, model,
                                          label=f"run trial seed {run_trial.seed}")
@@ -434,7 +497,7 @@ def evaluate(args) -> tuple[dict, dict]:
         console.print(f"trial {i + 1}/{n_trials}, MPJPE ({dict(STAGES)[shown]}): " + ", ".join(
             f"{m} {e[shown]['mpjpe_mm']:.3f} mm" if "error" not in e else f"{m} failed"
             for m, e in entries.items()))
-    first_scene, _, first_rendered = next(iter(scenes.values()))
+    first_scene, _, first_rendered, _ = next(iter(scenes.values()))
     settings = {
         "calib": args.calib,
         "calibration": {m: {"file": args.calibration, "cameras": how}
@@ -455,10 +518,33 @@ def evaluate(args) -> tuple[dict, dict]:
     results = {"rig": rig, "environment": env, "settings": settings, "detections": detections,
                "under_two_views": {j: int(n) for j, n in zip(JOINT_NAMES, under_two_views) if n},
                "methods": {m: aggregate(per_method[m]) for m in methods}, "trials": raw}
+    if session is not None:
+        results["body_calibration"] = body_summary(session, offsets, body_errors)
     if first_rendered is not None:
         results["detector_2d"] = first_rendered[1]
     results["warnings"] = placement + _warnings(results)
     return results, examples
+
+
+def _clock_offsets(args) -> np.ndarray | None:
+    """(C,) the cameras' time_offset_ms from the run's or the rig file's cameras (None for a
+    capture or a calibration file: no clocks are known)."""
+    if args.run:
+        cfg = run_config(args.run)
+        return cfg.time_offsets_ms() if cfg is not None else None
+    return load_rig(args.rig).time_offsets_ms() if args.rig else None
+
+
+def _body_rig(truth, offsets, session, model, draw, seed) -> tuple:
+    """(the studio calibrated from the body in the true world, or why it failed; its errors
+    against the truth, or {"error": why})."""
+    try:
+        _, errors, cameras = calibrate_session(
+            truth, np.zeros(len(truth)) if offsets is None else offsets, session, model, draw,
+            seed)
+    except ValueError as e:
+        return f"calibration from the body (seed {seed}): {e}", {"error": str(e)}
+    return cameras, errors
 
 
 def output_dir(args, rig: str) -> Path:

@@ -182,6 +182,24 @@ def observe(cameras: list[Camera], scene: Scene, detector: DetectorModel,
     return Keypoints(pixels, confidence, occluded, outlier)
 
 
+def stacked(parts: list[Keypoints], axis: int) -> Keypoints:
+    """Keypoints joined along ``axis``: 0 for cameras, 2 for tracks side by side (people)."""
+    def cat(name):
+        values = [getattr(k, name) for k in parts]
+        return None if any(v is None for v in values) else np.concatenate(values, axis=axis)
+
+    return Keypoints(cat("pixels"), cat("confidence"), cat("occluded"), cat("outlier"))
+
+
+def keypoints_at_clocks(cameras: list[Camera], views: list[list[Scene]], draw, seed) -> Keypoints:
+    """Keypoints (C, T, people x 24) of ``views`` ([camera][person] scenes, each camera's at its
+    own clock: scene.seen_by_clocks), drawn by ``draw(cameras, scene, rng)`` (observe or
+    observe_fitted with its model), each camera and person from its own stream of ``seed``."""
+    return stacked([stacked([draw([cam], views[c][p], np.random.default_rng([*seed, c, p]))
+                             for p in range(len(views[c]))], axis=2)
+                    for c, cam in enumerate(cameras)], axis=0)
+
+
 def _keypoint_path(folder: Path, camera: Camera, frame: int) -> Path:
     return folder / camera.name / f"{frame:06d}_keypoints.json"
 

@@ -18,10 +18,21 @@ import matplotlib.pyplot as plt  # noqa: E402 (after choosing the headless backe
 import numpy as np  # noqa: E402
 
 from stereo_bench.report.markdown import summarize  # noqa: E402
+from stereo_bench.run.sweep_stats import t_interval  # noqa: E402
 
 from .motion import JOINT_NAMES, PARENTS  # noqa: E402
 
 COST, FLOOR = "excess_mpjpe_mm", "gt_mpjpe_mm"  # paired with gt in each trial (cli.evaluate_trial)
+BODY = "body"  # the method name of the calibration from the body (pose_eval.body_session)
+#: The calibration from the body's errors against the truth (metrics.studio_errors), as reported.
+BODY_ERRORS = [("rotation_deg", "rotation, deg (mean over cameras)"),
+               ("rotation_deg_max", "rotation, deg (worst camera)"),
+               ("centre_mm", "centre, mm (mean over cameras)"),
+               ("centre_mm_max", "centre, mm (worst camera)"),
+               ("scale_pct", "scale, %"),
+               ("offset_frames", "clock, frames (worst camera)"),
+               ("vertical_deg", "vertical, deg"),
+               ("rms_px", "reprojection RMS, px (inliers)")]
 MEASURES = [("mpjpe_mm", "MPJPE (standard) mm"),
             (COST, "Cost of the calibration: MPJPE minus gt's, same keypoints, mm"),
             (FLOOR, "gt's MPJPE in the trials the method succeeded in, mm"),
@@ -58,6 +69,46 @@ def aggregate(trials: list[dict]) -> dict:
         agg[stage]["missing_joints"] = sum(e["missing_joints"] for e in entries)
         agg[stage]["total_joints"] = sum(e["total_joints"] for e in entries)
     return agg
+
+
+def body_summary(session, offsets_ms, errors: list[dict]) -> dict:
+    """The calibration from the body over the trials: its settings, each error's mean and 95 %
+    interval (sweep_stats.t_interval) over the trials it succeeded in, and its failures."""
+    done = [e for e in errors if "error" not in e]
+    return {"session": {"people": session.people, "frames": session.frames,
+                        "scale": session.scale, "max_offset_frames": session.max_offset_frames,
+                        "time_offset_ms": None if offsets_ms is None else
+                        [float(v) for v in offsets_ms]},
+            "errors": {k: t_interval([e[k] for e in done]) for k, _ in BODY_ERRORS},
+            "vertical_from_floor": sum(e["vertical_from_floor"] for e in done),
+            "trials": len(errors), "failures": [e["error"] for e in errors if "error" in e]}
+
+
+def _mean_interval(s: dict) -> str:
+    if s["n"] == 0:
+        return "failed"
+    if s["n"] == 1:
+        return f"{s['mean']:.3f}"
+    return f"{s['mean']:.3f} [{s['ci_low']:.3f}, {s['ci_high']:.3f}]"
+
+
+def body_lines(body: dict) -> list[str]:
+    """The calibration from the body's section of the report."""
+    s = body["session"]
+    ok = body["trials"] - len(body["failures"])
+    lines = ["## Calibration from the body", "",
+             f"The studio calibrated with no board, from {s['people']} "
+             f"{'person' if s['people'] == 1 else 'people'} walking for {s['frames']} frames "
+             f"(method `{BODY}` in the tables above), scale from the "
+             f"{'person height' if s['scale'] == 'height' else 'baseline of cameras 0 and 1'}, "
+             f"clocks searched over +-{s['max_offset_frames']} frames"
+             + (f", true offsets {s['time_offset_ms']} ms" if s["time_offset_ms"] else "")
+             + f". Errors against the truth after a similarity alignment, mean [95 % interval] "
+             f"over {ok} of {body['trials']} trial(s); the vertical came from the floor in "
+             f"{body['vertical_from_floor']} of them (else from the body's axis).", "",
+             "| error | value |", "|---|---|"]
+    lines += [f"| {label} | {_mean_interval(body['errors'][k])} |" for k, label in BODY_ERRORS]
+    return lines + [""]
 
 
 def fmt(s: dict) -> str:
@@ -125,6 +176,8 @@ def markdown(results: dict) -> str:
     for stage, label in stages:
         lines += [f"## The cost of each calibration ({label}): Table 5 redone, {rig} ({env})",
                   ""] + cost_table(results, stage) + [""]
+    if "body_calibration" in results:
+        lines += body_lines(results["body_calibration"])
     for key, title in MEASURES:
         if key in (COST, FLOOR):  # in Table 5 redone above, paired, with the spread
             continue
