@@ -80,7 +80,7 @@ def body_summary(session, offsets_ms, errors: list[dict]) -> dict:
                         "time_offset_ms": None if offsets_ms is None else
                         [float(v) for v in offsets_ms]},
             "errors": {k: t_interval([e[k] for e in done]) for k, _ in BODY_ERRORS},
-            "vertical_from_floor": sum(e["vertical_from_floor"] for e in done),
+            "vertical_from_floor": int(sum(e["vertical_from_floor"] for e in done)),
             "trials": len(errors), "failures": [e["error"] for e in errors if "error" in e]}
 
 
