@@ -27,7 +27,7 @@ from .body import NUM_JOINTS, forward, to_mm
 from .body_calibration import BodyCalibration, Scale, Skeleton, calibrate_from_body
 from .metrics import studio_errors
 from .motion import FOOT_JOINTS, JOINT
-from .observe import Keypoints, keypoints_at_clocks
+from .observe import LAYOUTS, Keypoints, keypoints_at_clocks
 from .scene import Person, in_true_world, seen_by_clocks
 
 WALK_RADII_M = (1.5, 0.8, 2.1, 0.4)  # person k walks a circle of radius WALK_RADII_M[k]
@@ -68,23 +68,34 @@ def walkers(people: int, seed: int) -> list[Person]:
             for k in range(people)]
 
 
-#: The height chain of an SMPL body (body_calibration.Skeleton): both legs at half weight.
-HEIGHT_CHAIN = tuple((JOINT[a], JOINT[b], w) for a, b, w in (
-    ("left_ankle", "left_knee", 0.5), ("left_knee", "left_hip", 0.5),
-    ("right_ankle", "right_knee", 0.5), ("right_knee", "right_hip", 0.5),
-    ("pelvis", "neck", 1.0), ("neck", "head", 1.0)))
+# The height chain (body_calibration.Skeleton) by layout, as (joint, joint, weight): shins and
+# thighs at half weight (two legs), pelvis to neck, neck to head. BODY_25 has no pelvis or head
+# joint: its mid-hip and nose stand in for them, with the SMPL body's ratio of stature to the
+# chain, an approximation (docs/body_calibration.md gives what it costs).
+_CHAIN = (("left_ankle", "left_knee", 0.5), ("left_knee", "left_hip", 0.5),
+          ("right_ankle", "right_knee", 0.5), ("right_knee", "right_hip", 0.5),
+          ("pelvis", "neck", 1.0), ("neck", "head", 1.0))
+BODY25 = {"head": 0, "neck": 1, "pelvis": 8, "right_hip": 9, "right_knee": 10,
+          "right_ankle": 11, "left_hip": 12, "left_knee": 13, "left_ankle": 14}
+LAYOUT_JOINTS = {  # per layout: joint index by name, its feet (ankles, toes, heels)
+    "smpl24": (JOINT, FOOT_JOINTS),
+    "body25": (BODY25, (11, 14, 19, 20, 21, 22, 23, 24)),
+}
 
 
-def smpl_skeleton(model, people: int) -> tuple[Skeleton, float]:
-    """(the tracks' feet, heads and height chain for ``people`` SMPL bodies side by side, the
-    body's stature mm, its lowest to its highest vertex at rest)."""
+def skeleton(layout: str, model, people: int) -> tuple[Skeleton, float]:
+    """(the tracks' feet, heads and the first person's height chain for ``people`` bodies of
+    ``layout`` side by side, the SMPL body's stature mm at rest, lowest to highest vertex)."""
     joints, vertices = forward(model, np.zeros((1, 69)), np.zeros((1, 3)))
     joints, vertices = to_mm(joints[0]), to_mm(vertices[0])
     stature = float(np.ptp(vertices[:, 1]))
-    rest = sum(w * np.linalg.norm(joints[a] - joints[b]) for a, b, w in HEIGHT_CHAIN)
-    feet = tuple(j + NUM_JOINTS * p for p in range(people) for j in FOOT_JOINTS)
-    heads = tuple(JOINT["head"] + NUM_JOINTS * p for p in range(people))
-    return Skeleton(feet, heads, HEIGHT_CHAIN, stature / rest), stature
+    rest = sum(w * np.linalg.norm(joints[JOINT[a]] - joints[JOINT[b]]) for a, b, w in _CHAIN)
+    index, foot = LAYOUT_JOINTS[layout]
+    J = LAYOUTS[layout]
+    chain = tuple((index[a], index[b], w) for a, b, w in _CHAIN)
+    feet = tuple(j + J * p for p in range(people) for j in foot)
+    heads = tuple(index["head"] + J * p for p in range(people))
+    return Skeleton(feet, heads, chain, stature / rest), stature
 
 
 def session_keypoints(truth: list[Camera], offsets_ms, session: Session, model, draw: Draw,
@@ -101,13 +112,13 @@ def calibrate_session(truth: list[Camera], offsets_ms, session: Session, model, 
     """(the calibration, its errors against the truth, its cameras in the true world) of one
     session; ValueError if the method fails (named by its step)."""
     keypoints, views = session_keypoints(truth, offsets_ms, session, model, draw, seed)
-    skeleton, stature = smpl_skeleton(model, session.people)
+    body, stature = skeleton("smpl24", model, session.people)
     if session.scale == "height":
         scale = Scale(height_mm=stature)
     else:
         scale = Scale(baseline_mm=float(np.linalg.norm(truth[0].center - truth[1].center)),
                       cameras=(truth[0].name, truth[1].name))
-    result = calibrate_from_body(truth, keypoints.pixels, keypoints.confidence, skeleton, scale,
+    result = calibrate_from_body(truth, keypoints.pixels, keypoints.confidence, body, scale,
                                  session.max_offset_frames)
     true_offsets = np.asarray(offsets_ms, float) * FPS / 1000.0
     true_up = views[0][0].world_from_body[0][:, 1]  # SMPL's up in the world: the floor's normal

@@ -35,6 +35,11 @@ OpenCV's convention, and the first person taken. The frame number (from 0) is th
 ``_keypoints.json``, so OpenPose's own ``<video>_<frame:012d>_keypoints.json`` names work too. OpenPose's own BODY_25 or COCO layouts have
 other joints (no spine, no collars) and must be mapped to SMPL's 24 first; a file with another
 count is refused. c = 0 (OpenPose's "not detected") or a missing file means no detection.
+
+Calibration from the body reads the same files as tracks (:func:`read_tracks`): either layout,
+SMPL's 24 joints or OpenPose's BODY_25 (its own 25, unmapped: the method needs no joint
+definitions but the feet, the head and the height chain), and several people when a tracker
+gave each the same ``person_id`` in every camera; without ids, the first person of each file.
 """
 
 from __future__ import annotations
@@ -258,16 +263,75 @@ def read_openpose(folder, cameras: list[Camera], frames: int | None = None) -> K
     return Keypoints(pixels, confidence)
 
 
+#: Joints per person of the layouts :func:`read_tracks` reads, by name.
+LAYOUTS = {"smpl24": NUM_JOINTS, "body25": 25}
+
+
+def _person_id(person: dict) -> int:
+    """A person's tracker id (OpenPose writes [-1] when it has none), -1 for none."""
+    pid = person.get("person_id", -1)
+    pid = pid[0] if isinstance(pid, list) and pid else pid
+    return pid if isinstance(pid, int) and not isinstance(pid, bool) else -1
+
+
+def read_tracks(folder, cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray, str, list[int]]:
+    """(pixels (C, T, N, 2) NaN where undetected, confidence (C, T, N), layout, person ids) of
+    the OpenPose-style files under ``folder`` (module notes): N = people x joints, people in
+    the order of their ids (one person, id -1, when the files give none)."""
+    files = _frame_files(Path(folder), cameras)
+    if not any(files):
+        raise FileNotFoundError(f"{folder}: no <camera>/<frame>_keypoints.json files")
+    T = max(max(f) for f in files if f) + 1
+    docs, ids, widths = {}, set(), set()
+    for c in range(len(cameras)):
+        for t, path in files[c].items():
+            try:
+                people = read_json(path, "OpenPose JSON file")["people"]
+                values = [np.asarray(p["pose_keypoints_2d"], dtype=np.float64) for p in people]
+            except (UnreadableFileError, KeyError, TypeError, ValueError) as e:
+                raise ValueError(f"{path}: expected OpenPose JSON with a 'people' list, each "
+                                 f"with pose_keypoints_2d ({e})") from None
+            widths |= {v.size for v in values}
+            ids |= {_person_id(p) for p in people}
+            docs[c, t] = [(_person_id(p), v) for p, v in zip(people, values)]
+    layout = {3 * n: name for name, n in LAYOUTS.items()}
+    if not widths or not widths <= set(layout) or len(widths) > 1:
+        raise ValueError(f"{folder}: pose_keypoints_2d has {sorted(widths)} values per person; "
+                         f"expected one layout: " + ", ".join(
+                             f"{3 * n} ({name})" for name, n in LAYOUTS.items()))
+    width = widths.pop()
+    J = width // 3
+    tracked = -1 not in ids
+    people = sorted(ids) if tracked else [-1]
+    pixels = np.full((len(cameras), T, len(people) * J, 2), np.nan)
+    confidence = np.zeros((len(cameras), T, len(people) * J))
+    for (c, t), found in docs.items():
+        for k, (pid, values) in enumerate(found):
+            if not tracked and k > 0:
+                break  # without ids, people cannot be matched across cameras: the first only
+            slot = people.index(pid) if tracked else 0
+            xyc = values.reshape(J, 3)
+            ok = (xyc[:, 2] > 0) & np.all(np.isfinite(xyc), axis=1)
+            pixels[c, t, slot * J:(slot + 1) * J][ok] = xyc[ok, :2]
+            confidence[c, t, slot * J:(slot + 1) * J][ok] = xyc[ok, 2]
+    return pixels, confidence, layout[width], people
+
+
 def write_openpose(folder, cameras: list[Camera], keypoints: Keypoints) -> None:
-    """Write detections in the layout :func:`read_openpose` reads (undetected: 0, 0, 0)."""
+    """Write detections in the layout :func:`read_openpose` reads (undetected: 0, 0, 0); tracks
+    of several people side by side (N = people x 24) as people with ids 0, 1, ..."""
     folder = Path(folder)
+    people = keypoints.pixels.shape[2] // NUM_JOINTS
     for c, cam in enumerate(cameras):
         (folder / cam.name).mkdir(parents=True, exist_ok=True)
         for t in range(keypoints.pixels.shape[1]):
-            ok = keypoints.confidence[c, t] > 0
-            xyc = np.zeros((NUM_JOINTS, 3))
-            xyc[ok, :2] = keypoints.pixels[c, t, ok]
-            xyc[ok, 2] = keypoints.confidence[c, t, ok]
-            doc = {"version": 1.3, "people": [{"person_id": [-1],
-                                               "pose_keypoints_2d": xyc.reshape(-1).tolist()}]}
-            write_json(_keypoint_path(folder, cam, t), doc)
+            entries = []
+            for k in range(people):
+                block = slice(k * NUM_JOINTS, (k + 1) * NUM_JOINTS)
+                ok = keypoints.confidence[c, t, block] > 0
+                xyc = np.zeros((NUM_JOINTS, 3))
+                xyc[ok, :2] = keypoints.pixels[c, t, block][ok]
+                xyc[ok, 2] = keypoints.confidence[c, t, block][ok]
+                entries.append({"person_id": [k if people > 1 else -1],
+                                "pose_keypoints_2d": xyc.reshape(-1).tolist()})
+            write_json(_keypoint_path(folder, cam, t), {"version": 1.3, "people": entries})

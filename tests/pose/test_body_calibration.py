@@ -160,3 +160,53 @@ def test_pose_eval_refuses_body_calibration_without_a_detector_model(tmp_path, c
                      "--out", str(out)])
     assert code == 2 and "--body-people" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_calibrate_keypoints_from_a_users_files(studio, tmp_path, capsys):
+    """Two tracked people in OpenPose files and an EasyMocap intrinsics file in; the studio
+    read back from the files it wrote by their own readers, against the truth."""
+    from stereo_bench import io
+    from stereo_bench.multiview.bundle import aligned_rig_errors
+    from pose_eval import calibrate_keypoints
+    from pose_eval.body_session import skeleton
+    from pose_eval.observe import write_openpose
+
+    cams, model = studio
+    offsets_ms = np.array([0.0, -30.0, 12.0, 44.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        keypoints, _ = session_keypoints(cams, offsets_ms, Session(people=2, frames=120), model,
+                                         _gaussian(1.0), [5])
+    write_openpose(tmp_path / "kp", cams, keypoints)
+    # A user's intrinsics file holds some poses too, wrong ones here: the method ignores them.
+    io.export([c.with_params(rvec=c.rvec + 0.3, tvec=c.tvec + 500) for c in cams],
+              tmp_path / "intrinsics", "easymocap")
+    stature = skeleton("smpl24", model, 2)[1]
+    out = tmp_path / "out"
+    code = calibrate_keypoints.main([str(tmp_path / "kp"), "--cameras",
+                                     str(tmp_path / "intrinsics"), "--height-mm", str(stature),
+                                     "--out", str(out)])
+    assert code == 0, capsys.readouterr().err
+    for fmt in ("easymocap", "colmap", "anipose"):
+        back = io.load(out / fmt, fmt)
+        e = aligned_rig_errors(back, cams)
+        assert e["rotation_deg"].max() < 0.05 and e["centre_mm"].max() < 3, fmt
+        assert abs(1 / e["scale"] - 1) < 0.005, fmt
+    report = __import__("json").loads((out / "report.json").read_text())
+    assert report["people"] == [0, 1] and report["layout"] == "smpl24"
+    est = np.array(list(report["offsets_ms"].values()))
+    assert np.abs(est - offsets_ms).max() < 0.05 * 1000 / FPS
+    # Refused by name: an unreadable layout, a camera the baseline does not know.
+    bad = tmp_path / "bad"
+    for cam in cams:
+        (bad / cam.name).mkdir(parents=True)
+        (bad / cam.name / "000000_keypoints.json").write_text(
+            '{"people": [{"pose_keypoints_2d": [1, 2, 1, 3, 4, 1]}]}')
+    code = calibrate_keypoints.main([str(bad), "--cameras", str(tmp_path / "intrinsics"),
+                                     "--height-mm", "1700", "--out", str(tmp_path / "o2")])
+    assert code == 2 and "expected one layout" in capsys.readouterr().err
+    code = calibrate_keypoints.main([str(tmp_path / "kp"), "--cameras",
+                                     str(tmp_path / "intrinsics"), "--baseline", "cam1", "camX",
+                                     "4000", "--out", str(tmp_path / "o3")])
+    assert code == 2 and "camX" in capsys.readouterr().err
+    assert not (tmp_path / "o2").exists() and not (tmp_path / "o3").exists()

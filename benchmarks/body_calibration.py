@@ -1,0 +1,144 @@
+"""Calibration from the body graded against the truth: the issue's table and its curves.
+
+For each studio (configs/studios/), number of people and keypoint detector, ``--seeds`` sessions
+of people walking for ``--frames`` frames, each camera's clock offset drawn per seed uniformly
+within +-``--max-offset-ms`` (camera 0 at 0), calibrated by pose_eval.body_session and graded by
+pose_eval.metrics.studio_errors: rotation and centre errors after a similarity alignment (mean
+over cameras), the scale error of the known height, the worst clock error, the vertical's error,
+the reprojection RMS and the wall time, each as its mean [95 % interval] over the seeds.
+Detectors: ``gaussN`` (N px Gaussian keypoints, occluded joints 3x) or ``blazepose_fit``
+(BlazePose's error as fitted on rendered bodies, pose_eval/data/blazepose_fit.json).
+
+    python benchmarks/body_calibration.py table [--rigs h36m_rectangle ring8] [--people 1 2]
+        [--detectors gauss1 blazepose_fit] [--seeds 5] [--frames 300] [--workers 2] [--json F]
+    python benchmarks/body_calibration.py curves [--rig h36m_rectangle] [--seeds 3] [--json F]
+
+``curves`` varies one thing at a time from 1 person, 300 frames, blazepose_fit: the number of
+frames (100, 300, 1000), the keypoint noise (Gaussian 1, 3, 10 px) and the number of people
+(1, 2, 3). Figures, not a pass/fail test.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import time  # noqa: E402
+import warnings  # noqa: E402
+from concurrent.futures import ProcessPoolExecutor  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from stereo_bench.config.schema import load_rig  # noqa: E402
+from stereo_bench.run.sweep_stats import t_interval  # noqa: E402
+from pose_eval.body import load_body_model  # noqa: E402
+from pose_eval.body_session import Session, calibrate_session  # noqa: E402
+from pose_eval.detector_fit import load_fit, observe_fitted  # noqa: E402
+from pose_eval.observe import DetectorModel, observe  # noqa: E402
+from pose_eval.report import BODY_ERRORS  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+SHOWN = ["rotation_deg", "centre_mm", "scale_pct", "offset_frames", "vertical_deg", "rms_px",
+         "seconds"]
+
+
+def _draw(detector: str):
+    if detector == "blazepose_fit":
+        fit = load_fit(None)
+        return lambda cams, scene, rng: observe_fitted(cams, scene, fit, rng)
+    model = DetectorModel(noise_px=float(detector.removeprefix("gauss")))
+    return lambda cams, scene, rng: observe(cams, scene, model, rng)
+
+
+def one(job: dict) -> dict:
+    """One graded session (a worker's task)."""
+    warnings.simplefilter("ignore")  # a walk leaving a view is expected and counted
+    cams = load_rig(ROOT / "configs/studios" / f"{job['rig']}.yaml").cameras_true()
+    rng = np.random.default_rng([job["seed"], 977])
+    offsets = np.r_[0.0, rng.uniform(-1, 1, len(cams) - 1) * job["max_offset_ms"]]
+    session = Session(job["people"], job["frames"], "height", job["max_offset_frames"])
+    start = time.perf_counter()
+    try:
+        _, errors, _ = calibrate_session(cams, offsets, session, load_body_model(),
+                                         _draw(job["detector"]), [job["seed"]])
+    except ValueError as e:
+        return {**job, "error": str(e)}
+    return {**job, **errors, "seconds": time.perf_counter() - start}
+
+
+def run(jobs: list[dict], workers: int) -> list[dict]:
+    with ProcessPoolExecutor(workers) as pool:
+        return list(pool.map(one, jobs))
+
+
+def _cell(values) -> str:
+    s = t_interval(values)
+    if s["n"] == 0:
+        return "failed"
+    digits = 3 if abs(s["mean"]) < 10 else 1
+    if s["n"] == 1:
+        return f"{s['mean']:.{digits}f}"
+    return f"{s['mean']:.{digits}f} [{s['ci_low']:.{digits}f}, {s['ci_high']:.{digits}f}]"
+
+
+def table(results: list[dict], keys: list[str]) -> str:
+    labels = dict(BODY_ERRORS, seconds="wall time, s")
+    lines = ["| " + " | ".join(keys) + " | n | " + " | ".join(labels[k] for k in SHOWN) + " |",
+             "|" + "---|" * (len(keys) + 1 + len(SHOWN))]
+    groups: dict[tuple, list[dict]] = {}
+    for r in results:
+        groups.setdefault(tuple(r[k] for k in keys), []).append(r)
+    for group, rows in groups.items():
+        done = [r for r in rows if "error" not in r]
+        lines.append("| " + " | ".join(map(str, group)) + f" | {len(done)}/{len(rows)} | "
+                     + " | ".join(_cell([r[k] for r in done]) for k in SHOWN) + " |")
+        lines += [f"|   failed: {r['error']} |" for r in rows if "error" in r]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("what", choices=["table", "curves"])
+    p.add_argument("--rigs", nargs="+", default=["h36m_rectangle", "ring8"])
+    p.add_argument("--rig", default="h36m_rectangle", help="the studio of the curves")
+    p.add_argument("--people", nargs="+", type=int, default=[1, 2])
+    p.add_argument("--detectors", nargs="+", default=["gauss1", "blazepose_fit"])
+    p.add_argument("--seeds", type=int, default=5)
+    p.add_argument("--frames", type=int, default=300)
+    p.add_argument("--max-offset-ms", type=float, default=60.0)
+    p.add_argument("--max-offset-frames", type=int, default=10)
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--json", help="write every session's figures here")
+    args = p.parse_args()
+    base = {"frames": args.frames, "max_offset_ms": args.max_offset_ms,
+            "max_offset_frames": args.max_offset_frames}
+    if args.what == "table":
+        jobs = [{**base, "rig": rig, "people": n, "detector": d, "seed": s}
+                for rig in args.rigs for n in args.people for d in args.detectors
+                for s in range(args.seeds)]
+        keys = ["rig", "people", "detector"]
+    else:
+        start = {**base, "rig": args.rig, "people": 1, "detector": "blazepose_fit"}
+        jobs = [{**start, "curve": "frames", "frames": f, "seed": s}
+                for f in (100, 300, 1000) for s in range(args.seeds)]
+        jobs += [{**start, "curve": "noise", "detector": f"gauss{n}", "seed": s}
+                 for n in (1, 3, 10) for s in range(args.seeds)]
+        jobs += [{**start, "curve": "people", "people": n, "seed": s}
+                 for n in (1, 2, 3) for s in range(args.seeds)]
+        keys = ["curve", "frames", "detector", "people"]
+    began = time.perf_counter()
+    results = run(jobs, args.workers)
+    print(table(results, keys))
+    print(f"\n{len(jobs)} sessions in {time.perf_counter() - began:.0f} s on {args.workers} "
+          f"worker(s)")
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=1))
+
+
+if __name__ == "__main__":
+    main()
