@@ -43,6 +43,7 @@ floor, the origin on the stance plane below the people's mean position; lengths 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -58,6 +59,10 @@ MIN_PAIR_INLIERS = 30  # fewer joints agreeing on a pair's geometry do not join 
 MAX_PAIR_POINTS = 4000  # a pair's RANSAC sees at most this many joints (drawn reproducibly)
 STANCE_SHARE = 1 / 3  # the slowest share of a foot joint's frames taken as its stances
 FLAT_SPREAD = 0.15  # stance points spread less than this (2nd over 1st extent) give no plane
+# The cameras and tracks are refitted after each round of left-right swaps (mirror_labels).
+MIRROR_ROUNDS = 3
+MAX_MIRROR_CAMERAS = 10  # views' swaps are searched over 2^(C-1) choices per frame
+MAX_OFFSET_STEP = 0.5  # frames the bundle adjustment may move a clock from its scan
 # The tracks' smoothness prior, per px of focal length: a control point's second difference d
 # (the first pair's baseline is the unit) costs SMOOTHING * f * d "px". A walking body's joints
 # accelerate by about 0.002 baselines per frame^2 (0.2 px here, against 1 px of keypoint noise
@@ -96,6 +101,8 @@ class Skeleton:
     heads: tuple[int, ...]
     chain: tuple[tuple[int, int, float], ...]
     stature_per_chain: float
+    mirror: tuple[int, ...] = ()  # the tracks' permutation that swaps left and right (or none)
+    joints: int = 24  # tracks per person
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,7 +111,8 @@ class BodyCalibration:
     ahead of camera 0's, in frames; points (T, N, 3) the joints' tracks at camera 0's frames
     (NaN where not reconstructed); rms_px: the reprojection error's RMS over the inliers;
     vertical: 'floor' or 'body axis'; pairs: per joint pair, its shift and inliers; order: the
-    cameras in the order they joined."""
+    cameras in the order they joined; mirrored_views: how many views (camera, frame, person)
+    had their left and right swapped back."""
 
     cameras: list[Camera]
     offsets_frames: np.ndarray
@@ -113,6 +121,7 @@ class BodyCalibration:
     vertical: str
     pairs: list[dict] = field(default_factory=list)
     order: list[str] = field(default_factory=list)
+    mirrored_views: int = 0  # views (camera, frame, person) whose left and right were swapped
 
 
 # ----------------------------------------------------------------------------------------------
@@ -413,46 +422,65 @@ class _Bundle:
         return self._evaluate(x, True)[1]
 
 
-def _offset_bounds(problem: _Bundle, offsets: np.ndarray, n: int) -> tuple[np.ndarray, ...]:
-    """Bounds keeping each offset within half a frame beyond its stencil's middle interval: the
-    spline is not trusted further out, and the next round moves the stencil."""
+def _offset_bounds(problem: _Bundle, offsets: np.ndarray, start: np.ndarray, n: int
+                   ) -> tuple[np.ndarray, ...]:
+    """Bounds keeping each offset within half a frame beyond its stencil's middle interval (the
+    spline is not trusted further out, and the next round moves the stencil) and within
+    MAX_OFFSET_STEP of where the adjustment started (the scan's minimum: a descent that goes
+    further has left it for another stride's)."""
     lo, hi = np.full(n, -np.inf), np.full(n, np.inf)
     if problem.estimate_offsets:
         k = 6 * (problem.C - 1)
-        start = np.floor(offsets[1:])
-        lo[k:k + problem.C - 1] = start - 0.5
-        hi[k:k + problem.C - 1] = start + 1.5
+        here = np.floor(offsets[1:])
+        lo[k:k + problem.C - 1] = np.maximum(here - 0.5, start[1:] - MAX_OFFSET_STEP)
+        hi[k:k + problem.C - 1] = np.minimum(here + 1.5, start[1:] + MAX_OFFSET_STEP)
     return lo, hi
 
 
+class Adjusted(NamedTuple):
+    """A bundle adjustment's result: cameras, offsets (C,), points (T, N, 3) (with offsets, the
+    B-spline's control points), the reprojection RMS over inliers (px), the robust scale (px:
+    3 MADs of the residuals) and the mean soft-L1 cost at ``scale_px`` as given (comparable
+    between adjustments given the same scale)."""
+
+    cameras: list
+    offsets: np.ndarray
+    points: np.ndarray
+    rms_px: float
+    robust_px: float
+    cost: float
+
+
 def bundle_adjust(cameras, pixels, weights, points, offsets, estimate_offsets: bool,
-                  segments: np.ndarray, max_rounds: int = 6):
-    """(cameras, offsets (C,), points (T, N, 3), rms px over inliers, robust scale px) of the
-    bundle adjustment (see the module notes); camera 0 holds the gauge. Rounds rebuild the
-    stencils until no offset leaves its frame interval (one round when offsets are fixed)."""
-    scale_px = None
+                  segments: np.ndarray, scale_px: float | None = None,
+                  max_rounds: int = 6) -> Adjusted:
+    """The bundle adjustment (module notes); camera 0 holds the gauge. scale_px: the soft-L1
+    scale (default: 3 MADs of the start's residuals). Rounds rebuild the stencils until no
+    offset leaves its frame interval (one round when offsets are fixed)."""
+    start = np.asarray(offsets, float).copy()
     for _ in range(max_rounds if estimate_offsets else 1):
         problem = _Bundle(cameras, pixels, weights, points, offsets, estimate_offsets, segments)
         x0 = problem.pack(cameras, offsets, points)
-        r0 = problem.residuals(x0)
         if scale_px is None:  # the soft L1 scale: 3 robust deviations of the start's residuals
-            scale_px = max(0.5, 3 * 1.4826 * float(np.median(np.abs(r0[:problem.n_obs]))))
+            r0 = problem.residuals(x0)[:problem.n_obs]
+            scale_px = max(0.5, 3 * 1.4826 * float(np.median(np.abs(r0))))
         sol = least_squares(problem.residuals, x0, jac=problem.jacobian, method="trf",
-                            bounds=_offset_bounds(problem, offsets, len(x0)),
+                            bounds=_offset_bounds(problem, offsets, start, len(x0)),
                             loss="soft_l1", f_scale=scale_px, x_scale="jac",
                             tr_solver="lsmr", max_nfev=50, xtol=1e-10, ftol=1e-8)
         before = np.floor(offsets)
         cameras, offsets, P = problem.unpack(sol.x)
         points = np.full(points.shape, np.nan)
         points[problem.index >= 0] = P
-        r = sol.fun[:problem.n_obs].reshape(-1, 2)
-        scale_px = max(0.5, 3 * 1.4826 * float(np.median(np.abs(r))))
+        r = sol.fun[:problem.n_obs]
         if np.array_equal(np.floor(offsets), before):
             break
-    e = np.linalg.norm(r, axis=1)
-    inl = e < 2 * scale_px
+    robust = max(0.5, 3 * 1.4826 * float(np.median(np.abs(r))))
+    e = np.linalg.norm(r.reshape(-1, 2), axis=1)
+    inl = e < 2 * robust
     rms = float(np.sqrt(np.mean(e[inl] ** 2))) if inl.any() else float("nan")
-    return cameras, offsets, points, rms, scale_px
+    return Adjusted(cameras, offsets, points, rms, robust,
+                    float(np.mean(_soft_l1(np.abs(r), scale_px))))
 
 
 def _soft_l1(e: np.ndarray, scale: float) -> np.ndarray:
@@ -488,6 +516,66 @@ def scan_offset(camera: Camera, pixels: np.ndarray, weights: np.ndarray, points:
         if cost < best_cost:
             best, best_cost = float(d), cost
     return best
+
+
+def _robust_start(posed: list[Camera], sync: np.ndarray, threshold_px: float) -> np.ndarray:
+    """The joints' tracks (T, N, 3) to start the bundle adjustment: outlier views are left out
+    (3+ views); a joint whose views still disagree by far (two views, one an outlier) starts
+    as missing rather than as a wrong start."""
+    T, N = sync.shape[1:3]
+    points, inliers = triangulate_robust(posed, sync, threshold_px=3 * threshold_px,
+                                         refine=False)
+    err = np.stack([np.linalg.norm(cam.project(points.reshape(-1, 3)).reshape(T, N, 2) - sync[c],
+                                   axis=-1) for c, cam in enumerate(posed)])
+    err = np.where(inliers & np.isfinite(err), err, 0.0)
+    points[err.max(axis=0) > 10 * threshold_px] = np.nan
+    return points
+
+
+def mirror_labels(posed: list[Camera], sync: np.ndarray, shifts: np.ndarray,
+                  segments: np.ndarray, skeleton: Skeleton, threshold_px: float) -> np.ndarray:
+    """(C, T, people) bool: which views to read with left and right swapped, camera c's frame f
+    being camera 0's f + shift_c; sync (C, T, N, 2): the keypoints as labelled, at camera 0's
+    frames.
+
+    Per frame and person, every choice of swaps in cameras 1.. (camera 0 as labelled: swapping
+    every view renames the person's sides and changes no geometry) is triangulated, and the
+    choice with the least robust reprojection cost (errors capped at 3 thresholds) wins, so a
+    view is judged by all cameras together and not by others that may be swapped themselves.
+    Needs at most MAX_MIRROR_CAMERAS cameras (2^(C-1) choices); with more, none is swapped."""
+    C, T, N = sync.shape[:3]
+    J = skeleton.joints
+    flips = np.zeros((C, T, N // J), dtype=bool)
+    if C > MAX_MIRROR_CAMERAS:
+        return flips
+    mirror = np.asarray(skeleton.mirror)
+    cap = 3 * threshold_px
+    choices = np.array([[(k >> (c - 1)) & 1 if c else 0 for c in range(C)]
+                        for k in range(2 ** (C - 1))], dtype=bool)
+    costs = np.empty((len(choices), T, N // J))
+    for k, choice in enumerate(choices):
+        read = np.where(choice[:, None, None, None], sync[:, :, mirror], sync)
+        X = triangulate_dlt(posed, read)
+        e = np.stack([np.linalg.norm(cam.project(X.reshape(-1, 3)).reshape(T, N, 2) - read[c],
+                                     axis=-1) for c, cam in enumerate(posed)])
+        e = np.minimum(np.where(np.isfinite(e), e, cap), cap) ** 2  # missing: capped, as all
+        costs[k] = e.sum(0).reshape(T, N // J, J).sum(-1)
+    best = choices[np.argmin(costs, axis=0)]  # (T, people, C)
+    for c in range(C):
+        own = shifted(best[:, :, c].astype(float), int(shifts[c]), segments)
+        flips[c] = np.nan_to_num(own) > 0.5
+    return flips
+
+
+def _flip(pixels: np.ndarray, confidence: np.ndarray, flips: np.ndarray, skeleton: Skeleton):
+    """The keypoints with left and right swapped in the views ``flips`` (C, T, people)."""
+    pixels, confidence = pixels.copy(), confidence.copy()
+    J, mirror = skeleton.joints, np.asarray(skeleton.mirror)
+    for c, t, p in zip(*np.nonzero(flips)):
+        block = np.arange(p * J, (p + 1) * J)
+        pixels[c, t, block] = pixels[c, t, mirror[block]]
+        confidence[c, t, block] = confidence[c, t, mirror[block]]
+    return pixels, confidence
 
 
 # ----------------------------------------------------------------------------------------------
@@ -613,30 +701,52 @@ def calibrate_from_body(cameras: list[Camera], pixels: np.ndarray, confidence: n
                 pairs[(a, b)] = found
     order, parent = spanning_tree(pairs, C, names)
     posed, shifts = initial_rig(cameras, pixels, x, pairs, order, parent, threshold, segments)
-    sync = _synchronised(pixels, shifts, segments)
-    # Outlier views are left out of each joint's start (3+ views); a joint whose views still
-    # disagree by far (two views, one an outlier) starts the bundle adjustment as missing.
-    points, inliers = triangulate_robust(posed, sync, threshold_px=3 * threshold_px,
-                                         refine=False)
-    err = np.stack([np.linalg.norm(cam.project(points.reshape(-1, 3)).reshape(T, N, 2) - sync[c],
-                                   axis=-1) for c, cam in enumerate(posed)])
-    err = np.where(inliers & np.isfinite(err), err, 0.0)
-    points[err.max(axis=0) > 10 * threshold_px] = np.nan
+    swapped = np.zeros((C, T, N // skeleton.joints), dtype=bool) if skeleton else None
+    labelled = pixels, confidence
+    best, scale_px = None, None
+    for attempt in range(1 + MIRROR_ROUNDS * bool(skeleton and skeleton.mirror)):
+        sync = _synchronised(pixels, shifts, segments)
+        weights = np.where(np.isfinite(pixels[..., 0]), confidence, 0.0)
+        fitted = bundle_adjust(posed, pixels, weights, _robust_start(posed, sync, threshold_px),
+                               shifts.astype(float), False, segments, scale_px)
+        scale_px = scale_px or fitted.robust_px  # every round's cost at the first's scale
+        if best is not None and not fitted.cost < best[0].cost:
+            break  # the swaps did not fit better: the last state stands
+        best = fitted, pixels, confidence, sync, swapped
+        if attempt == MIRROR_ROUNDS or not (skeleton and skeleton.mirror):
+            break
+        # A detector that took a person's back for their front swapped left and right in that
+        # view: the views are read swapped where all cameras agree better so, and the cameras
+        # and tracks fitted again; kept only if the fit improves.
+        flips = mirror_labels(fitted.cameras, _synchronised(*labelled[:1], shifts, segments),
+                              shifts, segments, skeleton, threshold_px)
+        if np.array_equal(flips, swapped):
+            break
+        swapped = flips
+        pixels, confidence = _flip(*labelled, flips, skeleton)
+    fitted, pixels, confidence, sync, swapped = best
+    posed, points, rms = fitted.cameras, fitted.points, fitted.rms_px
+    offsets = shifts.astype(float)
     weights = np.where(np.isfinite(pixels[..., 0]), confidence, 0.0)
-    posed, offsets, points, rms, scale_px = bundle_adjust(posed, pixels, weights, points,
-                                                          shifts.astype(float), False, segments)
     if max_offset_frames > 0:
         # Each clock to a fraction of a frame against the others' tracks, then all together.
+        scanned = offsets.copy()
         for c in range(1, C):
             others = [k for k in range(C) if k != c]
             alone = (triangulate_robust([posed[k] for k in others], sync[others],
                                         threshold_px=3 * threshold_px, refine=False)[0]
                      if len(others) >= 2 else points)
-            offsets[c] = scan_offset(posed[c], pixels[c], weights[c], alone, shifts[c],
-                                     scale_px / 3, segments)
-        posed, offsets, control, rms, _ = bundle_adjust(posed, pixels, weights, points,
-                                                        offsets, True, segments)
-        points = on_frames(control, segments)
+            scanned[c] = scan_offset(posed[c], pixels[c], weights[c], alone, shifts[c],
+                                     fitted.robust_px / 3, segments)
+        clocked = bundle_adjust(posed, pixels, weights, points, scanned, True, segments,
+                                scale_px)
+        # Clocks that do not fit the keypoints better than the whole-frame shifts were not
+        # found (a short or slow motion says little about time): the shifts stand. Judged by
+        # the median residual: the spline leaves out observations at a track's ends, so the
+        # two fits' mean costs run over different sets.
+        if clocked.robust_px < fitted.robust_px:
+            posed, offsets, rms = clocked.cameras, clocked.offsets, clocked.rms_px
+            points = on_frames(clocked.points, segments)
     R, t, how, _ = floor_frame(points, skeleton, posed[0])
     if scale.baseline_mm is not None:
         a, b = (names.index(n) for n in scale.cameras)
@@ -652,4 +762,4 @@ def calibrate_from_body(cameras: list[Camera], pixels: np.ndarray, confidence: n
         world, offsets, world_points, rms, how,
         [{"cameras": [names[a], names[b]], "shift": p["shift"], "inliers": p["inliers"]}
          for (a, b), p in sorted(pairs.items())],
-        [names[c] for c in order])
+        [names[c] for c in order], int(swapped.sum()) if swapped is not None else 0)

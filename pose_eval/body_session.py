@@ -23,7 +23,7 @@ import numpy as np
 from stereo_bench.core.camera import Camera
 from stereo_bench.run.exchange import rebased
 
-from .body import NUM_JOINTS, forward, to_mm
+from .body import forward, to_mm
 from .body_calibration import BodyCalibration, Scale, Skeleton, calibrate_from_body
 from .metrics import studio_errors
 from .motion import FOOT_JOINTS, JOINT
@@ -77,9 +77,13 @@ _CHAIN = (("left_ankle", "left_knee", 0.5), ("left_knee", "left_hip", 0.5),
           ("pelvis", "neck", 1.0), ("neck", "head", 1.0))
 BODY25 = {"head": 0, "neck": 1, "pelvis": 8, "right_hip": 9, "right_knee": 10,
           "right_ankle": 11, "left_hip": 12, "left_knee": 13, "left_ankle": 14}
-LAYOUT_JOINTS = {  # per layout: joint index by name, its feet (ankles, toes, heels)
-    "smpl24": (JOINT, FOOT_JOINTS),
-    "body25": (BODY25, (11, 14, 19, 20, 21, 22, 23, 24)),
+BODY25_PAIRS = ((2, 5), (3, 6), (4, 7), (9, 12), (10, 13), (11, 14), (15, 16), (17, 18),
+                (19, 22), (20, 23), (21, 24))  # (right, left)
+SMPL_PAIRS = tuple((JOINT[n], JOINT[n.replace("left", "right")]) for n in JOINT
+                   if n.startswith("left"))
+LAYOUT_JOINTS = {  # per layout: joint index by name, its feet (ankles, toes, heels), its pairs
+    "smpl24": (JOINT, FOOT_JOINTS, SMPL_PAIRS),
+    "body25": (BODY25, (11, 14, 19, 20, 21, 22, 23, 24), BODY25_PAIRS),
 }
 
 
@@ -90,12 +94,16 @@ def skeleton(layout: str, model, people: int) -> tuple[Skeleton, float]:
     joints, vertices = to_mm(joints[0]), to_mm(vertices[0])
     stature = float(np.ptp(vertices[:, 1]))
     rest = sum(w * np.linalg.norm(joints[JOINT[a]] - joints[JOINT[b]]) for a, b, w in _CHAIN)
-    index, foot = LAYOUT_JOINTS[layout]
+    index, foot, pairs = LAYOUT_JOINTS[layout]
     J = LAYOUTS[layout]
     chain = tuple((index[a], index[b], w) for a, b, w in _CHAIN)
     feet = tuple(j + J * p for p in range(people) for j in foot)
     heads = tuple(index["head"] + J * p for p in range(people))
-    return Skeleton(feet, heads, chain, stature / rest), stature
+    mirror = np.arange(J * people)
+    for p in range(people):
+        for a, b in pairs:
+            mirror[a + J * p], mirror[b + J * p] = b + J * p, a + J * p
+    return Skeleton(feet, heads, chain, stature / rest, tuple(mirror.tolist()), J), stature
 
 
 def session_keypoints(truth: list[Camera], offsets_ms, session: Session, model, draw: Draw,
