@@ -62,7 +62,8 @@ FLAT_SPREAD = 0.15  # stance points spread less than this (2nd over 1st extent) 
 # The cameras and tracks are refitted after each round of left-right swaps (mirror_labels).
 MIRROR_ROUNDS = 3
 MAX_MIRROR_CAMERAS = 10  # views' swaps are searched over 2^(C-1) choices per frame
-MAX_OFFSET_STEP = 0.5  # frames the bundle adjustment may move a clock from its scan
+MAX_OFFSET_STEP = 1.0  # frames the bundle adjustment may move a clock from its scan
+CLOCK_ROUNDS = 3  # scans and adjustments of the clocks, while one is held at its bound
 # The tracks' smoothness prior, per px of focal length: a control point's second difference d
 # (the first pair's baseline is the unit) costs SMOOTHING * f * d "px". A walking body's joints
 # accelerate by about 0.002 baselines per frame^2 (0.2 px here, against 1 px of keypoint noise
@@ -729,24 +730,36 @@ def calibrate_from_body(cameras: list[Camera], pixels: np.ndarray, confidence: n
     offsets = shifts.astype(float)
     weights = np.where(np.isfinite(pixels[..., 0]), confidence, 0.0)
     if max_offset_frames > 0:
-        # Each clock to a fraction of a frame against the others' tracks, then all together.
-        scanned = offsets.copy()
-        for c in range(1, C):
-            others = [k for k in range(C) if k != c]
-            alone = (triangulate_robust([posed[k] for k in others], sync[others],
-                                        threshold_px=3 * threshold_px, refine=False)[0]
-                     if len(others) >= 2 else points)
-            scanned[c] = scan_offset(posed[c], pixels[c], weights[c], alone, shifts[c],
-                                     fitted.robust_px / 3, segments)
-        clocked = bundle_adjust(posed, pixels, weights, points, scanned, True, segments,
-                                scale_px)
-        # Clocks that do not fit the keypoints better than the whole-frame shifts were not
-        # found (a short or slow motion says little about time): the shifts stand. Judged by
-        # the median residual: the spline leaves out observations at a track's ends, so the
-        # two fits' mean costs run over different sets.
-        if clocked.robust_px < fitted.robust_px:
-            posed, offsets, rms = clocked.cameras, clocked.offsets, clocked.rms_px
-            points = on_frames(clocked.points, segments)
+        # Each clock to a fraction of a frame against the others' tracks, then all together;
+        # again from the adjusted cameras while a clock is held at its bound (a camera posed
+        # with a whole frame wrong biases its first scan towards that frame).
+        current, cams_now, best_fit = shifts.astype(float), posed, fitted
+        for _ in range(CLOCK_ROUNDS):
+            scanned = current.copy()
+            synced = _synchronised(pixels, np.rint(current).astype(int), segments)
+            for c in range(1, C):
+                others = [k for k in range(C) if k != c]
+                alone = (triangulate_robust([cams_now[k] for k in others], synced[others],
+                                            threshold_px=3 * threshold_px, refine=False)[0]
+                         if len(others) >= 2 else points)
+                scanned[c] = scan_offset(cams_now[c], pixels[c], weights[c], alone,
+                                         current[c], best_fit.robust_px / 3, segments)
+            clocked = bundle_adjust(cams_now, pixels, weights, points, scanned, True,
+                                    segments, scale_px)
+            # Clocks that do not fit the keypoints better than the whole-frame shifts were
+            # not found (a short or slow motion says little about time): the shifts stand.
+            # Judged by the median residual: the spline leaves out observations at a track's
+            # ends, so the two fits' mean costs run over different sets.
+            if not clocked.robust_px < best_fit.robust_px:
+                break
+            # A clock held at its bound wanted to go further: the scan was biased; again.
+            held = np.abs(clocked.offsets - scanned).max() > MAX_OFFSET_STEP - 0.05
+            best_fit, current, cams_now = clocked, clocked.offsets, clocked.cameras
+            if not held:
+                break
+        if best_fit is not fitted:
+            posed, offsets, rms = best_fit.cameras, best_fit.offsets, best_fit.rms_px
+            points = on_frames(best_fit.points, segments)
     R, t, how, _ = floor_frame(points, skeleton, posed[0])
     if scale.baseline_mm is not None:
         a, b = (names.index(n) for n in scale.cameras)
