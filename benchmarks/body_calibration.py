@@ -150,6 +150,43 @@ def rendered(folders: list[str], max_offset_frames: int) -> dict:
             "detected": float(np.mean(confidence > 0))}
 
 
+def plot(results: list[dict], path: str) -> None:
+    """The curves as a figure: per varied thing, the centre error (mm) and the worst clock
+    error (frames) with 95 % intervals over the seeds."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    curves = [("frames", "frames", "session frames (BlazePose's fitted error)"),
+              ("noise", "detector", "keypoint noise, px (Gaussian)"),
+              ("people", "people", "people walking (BlazePose's fitted error)")]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+    for ax, (curve, key, label) in zip(axes, curves):
+        rows = [r for r in results if r.get("curve") == curve and "error" not in r]
+        xs = sorted({r[key] for r in rows}, key=lambda v: float(str(v).removeprefix("gauss")))
+        pos = [float(str(x).removeprefix("gauss")) for x in xs]
+        twin = ax.twinx()
+        for axis, measure, colour, name in ((ax, "centre_mm", "C0", "centre error, mm"),
+                                            (twin, "offset_frames", "C3",
+                                             "clock error, frames")):
+            stats = [t_interval([r[measure] for r in rows if r[key] == x]) for x in xs]
+            mean = np.array([s["mean"] for s in stats])
+            low = np.array([s["ci_low"] for s in stats])
+            high = np.array([s["ci_high"] for s in stats])
+            axis.errorbar(pos, mean, yerr=[np.nan_to_num(mean - low), np.nan_to_num(high - mean)],
+                          marker="o", color=colour, capsize=3, label=name)
+            axis.set_ylabel(name, color=colour)
+            axis.set_ylim(bottom=0)
+        ax.set_xscale("log" if curve != "people" else "linear")
+        ax.set_xticks(pos, [str(x).removeprefix("gauss") for x in xs])
+        ax.set_xlabel(label)
+    fig.suptitle("Calibration from the body, Human3.6M-like studio: errors against the truth "
+                 "(mean, 95 % interval over seeds)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("what", choices=["table", "curves", "rendered"])
@@ -164,6 +201,7 @@ def main() -> None:
     p.add_argument("--max-offset-frames", type=int, default=10)
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--json", help="write every session's figures here")
+    p.add_argument("--plot", help="curves: draw them into this PNG")
     args = p.parse_args()
     base = {"frames": args.frames, "max_offset_ms": args.max_offset_ms,
             "max_offset_frames": args.max_offset_frames}
@@ -191,6 +229,8 @@ def main() -> None:
           f"worker(s)")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1))
+    if args.plot and args.what == "curves":
+        plot(results, args.plot)
 
 
 if __name__ == "__main__":
