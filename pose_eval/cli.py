@@ -481,9 +481,10 @@ def evaluate(args) -> tuple[dict, dict]:
                 **{m: _placed(cams, truth) for m, (cams, _) in imported.items()}}
         if session is not None:
             # Its own streams: the session's keypoint noise owes nothing to the evaluation's.
-            rigs[BODY], errors = _body_rig(truth, offsets, session, model, draw,
-                                           [args.seed, i, BODY_STREAM])
+            rigs[BODY], errors, said = _body_rig(truth, offsets, session, model, draw,
+                                                 [args.seed, i, BODY_STREAM])
             body_errors.append(errors)
+            placement += [w for w in said if w not in placement]
         entries, joints = evaluate_trial(truth, rigs, keypoints, scene,
                                          args.robust, args.fit_smpl, model,
                                          label=f"run trial seed {run_trial.seed}")
@@ -537,14 +538,16 @@ def _clock_offsets(args) -> np.ndarray | None:
 
 def _body_rig(truth, offsets, session, model, draw, seed) -> tuple:
     """(the studio calibrated from the body in the true world, or why it failed; its errors
-    against the truth, or {"error": why})."""
-    try:
-        _, errors, cameras = calibrate_session(
-            truth, np.zeros(len(truth)) if offsets is None else offsets, session, model, draw,
-            seed)
-    except ValueError as e:
-        return f"calibration from the body (seed {seed}): {e}", {"error": str(e)}
-    return cameras, errors
+    against the truth, or {"error": why}; the warnings of placing its walkers)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            _, errors, cameras = calibrate_session(
+                truth, np.zeros(len(truth)) if offsets is None else offsets, session, model,
+                draw, seed)
+        except ValueError as e:
+            cameras, errors = f"calibration from the body (seed {seed}): {e}", {"error": str(e)}
+    return cameras, errors, [f"calibration from the body: {w.message}" for w in caught]
 
 
 def output_dir(args, rig: str) -> Path:
