@@ -15,6 +15,10 @@ person in a frame is one 3D point, seen by every camera that detected it):
    cameras join: the root pair's relative pose (``recoverPose``), then each next camera by PnP
    in RANSAC on the joints triangulated so far, which carries the scale of the first pair to
    every camera (relative poses alone would leave one scale per edge).
+   A detector that takes a person's back for their front swaps left and right in that view:
+   per frame and person, every choice of swaps in cameras 1.. is triangulated and the one of
+   least robust reprojection cost is read (:func:`mirror_labels`), then the cameras and tracks
+   are fitted again, for as long as the fit improves.
 3. **Bundle adjustment** of the cameras' poses, their clock offsets to a fraction of a frame
    and every joint's 3D track, with a robust loss (soft L1, its scale from the residuals' MAD)
    on the reprojection error weighted by the keypoint's confidence. A camera whose clock is
@@ -111,7 +115,7 @@ class BodyCalibration:
     """cameras: cam_from_world in the floor frame (mm); offsets_frames (C,): each camera's clock
     ahead of camera 0's, in frames; points (T, N, 3) the joints' tracks at camera 0's frames
     (NaN where not reconstructed); rms_px: the reprojection error's RMS over the inliers;
-    vertical: 'floor' or 'body axis'; pairs: per joint pair, its shift and inliers; order: the
+    vertical: 'floor' or 'body axis'; pairs: per camera pair, its shift and inliers; order: the
     cameras in the order they joined; mirrored_views: how many views (camera, frame, person)
     had their left and right swapped back."""
 
@@ -613,10 +617,9 @@ def stances(points: np.ndarray, feet: tuple[int, ...]) -> np.ndarray:
     return np.concatenate(out) if out else np.zeros((0, 3))
 
 
-def floor_frame(points: np.ndarray, skeleton: Skeleton, camera0: Camera
-                ) -> tuple[np.ndarray, np.ndarray, str, float]:
-    """(world_from_ref R, t, how the vertical was found, the stance plane's offset along up)
-    of the floor frame (module notes), from points (T, N, 3) in camera 0's frame."""
+def floor_frame(points: np.ndarray, skeleton: Skeleton) -> tuple[np.ndarray, np.ndarray, str]:
+    """(world_from_ref R, t, how the vertical was found) of the floor frame (module notes),
+    from points (T, N, 3) in camera 0's frame."""
     feet = stances(points, skeleton.feet)
     heads = points[:, list(skeleton.heads)].reshape(-1, 3)
     heads = heads[np.all(np.isfinite(heads), -1)]
@@ -633,8 +636,6 @@ def floor_frame(points: np.ndarray, skeleton: Skeleton, camera0: Camera
         centre, how = all_feet.mean(0), "body axis"
     if np.dot(heads.mean(0) - all_feet.mean(0), up) < 0:
         up = -up
-    if up is None:
-        raise ValueError("no vertical")
     view = np.array([0.0, 0.0, 1.0])  # camera 0's optical axis in its own frame
     x = view - np.dot(view, up) * up
     if np.linalg.norm(x) < 1e-6:  # camera 0 looks straight down: its image x instead
@@ -644,7 +645,7 @@ def floor_frame(points: np.ndarray, skeleton: Skeleton, camera0: Camera
     finite = points[np.all(np.isfinite(points), -1)]
     middle = finite.mean(0)
     origin = middle - np.dot(middle - centre, up) * up
-    return R, -R @ origin, how, float(np.dot(centre, up))
+    return R, -R @ origin, how
 
 
 def chain_length(points: np.ndarray, skeleton: Skeleton) -> float:
@@ -659,6 +660,68 @@ def chain_length(points: np.ndarray, skeleton: Skeleton) -> float:
                              f"was never reconstructed; give a baseline instead")
         total += weight * float(np.median(d))
     return total
+
+
+def _fit_labels(posed, pixels, confidence, shifts, segments, skeleton, threshold_px):
+    """(the bundle adjustment at whole-frame shifts, the keypoints as read, their confidence,
+    at camera 0's frames, which views were read with left and right swapped): refitted after
+    each round of swaps (mirror_labels) for as long as the fit improves, the cost of every
+    round at the first round's robust scale."""
+    C, T, N = pixels.shape[:3]
+    mirrored = bool(skeleton and skeleton.mirror)
+    swapped = np.zeros((C, T, N // skeleton.joints), dtype=bool) if skeleton else None
+    labelled = pixels, confidence
+    best, scale_px = None, None
+    for attempt in range(1 + MIRROR_ROUNDS * mirrored):
+        sync = _synchronised(pixels, shifts, segments)
+        weights = np.where(np.isfinite(pixels[..., 0]), confidence, 0.0)
+        fitted = bundle_adjust(posed, pixels, weights, _robust_start(posed, sync, threshold_px),
+                               shifts.astype(float), False, segments, scale_px)
+        scale_px = scale_px or fitted.robust_px
+        if best is not None and not fitted.cost < best[0].cost:
+            break  # the swaps did not fit better: the last state stands
+        best = fitted, pixels, confidence, sync, swapped
+        if attempt == MIRROR_ROUNDS or not mirrored:
+            break
+        flips = mirror_labels(fitted.cameras, _synchronised(labelled[0], shifts, segments),
+                              shifts, segments, skeleton, threshold_px)
+        if np.array_equal(flips, swapped):
+            break
+        swapped = flips
+        pixels, confidence = _flip(*labelled, flips, skeleton)
+    return best
+
+
+def _fit_clocks(fitted: Adjusted, pixels, confidence, shifts, segments, threshold_px
+                ) -> Adjusted | None:
+    """The bundle adjustment with each clock to a fraction of a frame, or None if it does not
+    fit the keypoints better than the whole-frame shifts (a short or slow motion says little
+    about time). Each clock is scanned against the tracks the others triangulate, then all are
+    adjusted together; again from the adjusted cameras while a clock is held at its bound (a
+    camera posed with a whole frame wrong biases its first scan towards that frame). Fits are
+    judged by their median residual: the spline leaves out observations at a track's ends, so
+    their mean costs run over different sets."""
+    C = len(pixels)
+    weights = np.where(np.isfinite(pixels[..., 0]), confidence, 0.0)
+    current, cameras, best = shifts.astype(float), fitted.cameras, None
+    for _ in range(CLOCK_ROUNDS):
+        scanned = current.copy()
+        synced = _synchronised(pixels, np.rint(current).astype(int), segments)
+        for c in range(1, C):
+            others = [k for k in range(C) if k != c]
+            alone = (triangulate_robust([cameras[k] for k in others], synced[others],
+                                        threshold_px=3 * threshold_px, refine=False)[0]
+                     if len(others) >= 2 else fitted.points)
+            scanned[c] = scan_offset(cameras[c], pixels[c], weights[c], alone, current[c],
+                                     (best or fitted).robust_px / 3, segments)
+        clocked = bundle_adjust(cameras, pixels, weights, fitted.points, scanned, True,
+                                segments, fitted.robust_px)
+        if not clocked.robust_px < (best or fitted).robust_px:
+            break
+        best, current, cameras = clocked, clocked.offsets, clocked.cameras
+        if np.abs(clocked.offsets - scanned).max() <= MAX_OFFSET_STEP - 0.05:
+            break  # no clock held at its bound
+    return best
 
 
 # ----------------------------------------------------------------------------------------------
@@ -702,65 +765,16 @@ def calibrate_from_body(cameras: list[Camera], pixels: np.ndarray, confidence: n
                 pairs[(a, b)] = found
     order, parent = spanning_tree(pairs, C, names)
     posed, shifts = initial_rig(cameras, pixels, x, pairs, order, parent, threshold, segments)
-    swapped = np.zeros((C, T, N // skeleton.joints), dtype=bool) if skeleton else None
-    labelled = pixels, confidence
-    best, scale_px = None, None
-    for attempt in range(1 + MIRROR_ROUNDS * bool(skeleton and skeleton.mirror)):
-        sync = _synchronised(pixels, shifts, segments)
-        weights = np.where(np.isfinite(pixels[..., 0]), confidence, 0.0)
-        fitted = bundle_adjust(posed, pixels, weights, _robust_start(posed, sync, threshold_px),
-                               shifts.astype(float), False, segments, scale_px)
-        scale_px = scale_px or fitted.robust_px  # every round's cost at the first's scale
-        if best is not None and not fitted.cost < best[0].cost:
-            break  # the swaps did not fit better: the last state stands
-        best = fitted, pixels, confidence, sync, swapped
-        if attempt == MIRROR_ROUNDS or not (skeleton and skeleton.mirror):
-            break
-        # A detector that took a person's back for their front swapped left and right in that
-        # view: the views are read swapped where all cameras agree better so, and the cameras
-        # and tracks fitted again; kept only if the fit improves.
-        flips = mirror_labels(fitted.cameras, _synchronised(*labelled[:1], shifts, segments),
-                              shifts, segments, skeleton, threshold_px)
-        if np.array_equal(flips, swapped):
-            break
-        swapped = flips
-        pixels, confidence = _flip(*labelled, flips, skeleton)
-    fitted, pixels, confidence, sync, swapped = best
+    fitted, pixels, confidence, sync, swapped = _fit_labels(posed, pixels, confidence, shifts,
+                                                            segments, skeleton, threshold_px)
     posed, points, rms = fitted.cameras, fitted.points, fitted.rms_px
     offsets = shifts.astype(float)
-    weights = np.where(np.isfinite(pixels[..., 0]), confidence, 0.0)
     if max_offset_frames > 0:
-        # Each clock to a fraction of a frame against the others' tracks, then all together;
-        # again from the adjusted cameras while a clock is held at its bound (a camera posed
-        # with a whole frame wrong biases its first scan towards that frame).
-        current, cams_now, best_fit = shifts.astype(float), posed, fitted
-        for _ in range(CLOCK_ROUNDS):
-            scanned = current.copy()
-            synced = _synchronised(pixels, np.rint(current).astype(int), segments)
-            for c in range(1, C):
-                others = [k for k in range(C) if k != c]
-                alone = (triangulate_robust([cams_now[k] for k in others], synced[others],
-                                            threshold_px=3 * threshold_px, refine=False)[0]
-                         if len(others) >= 2 else points)
-                scanned[c] = scan_offset(cams_now[c], pixels[c], weights[c], alone,
-                                         current[c], best_fit.robust_px / 3, segments)
-            clocked = bundle_adjust(cams_now, pixels, weights, points, scanned, True,
-                                    segments, scale_px)
-            # Clocks that do not fit the keypoints better than the whole-frame shifts were
-            # not found (a short or slow motion says little about time): the shifts stand.
-            # Judged by the median residual: the spline leaves out observations at a track's
-            # ends, so the two fits' mean costs run over different sets.
-            if not clocked.robust_px < best_fit.robust_px:
-                break
-            # A clock held at its bound wanted to go further: the scan was biased; again.
-            held = np.abs(clocked.offsets - scanned).max() > MAX_OFFSET_STEP - 0.05
-            best_fit, current, cams_now = clocked, clocked.offsets, clocked.cameras
-            if not held:
-                break
-        if best_fit is not fitted:
-            posed, offsets, rms = best_fit.cameras, best_fit.offsets, best_fit.rms_px
-            points = on_frames(best_fit.points, segments)
-    R, t, how, _ = floor_frame(points, skeleton, posed[0])
+        clocked = _fit_clocks(fitted, pixels, confidence, shifts, segments, threshold_px)
+        if clocked is not None:
+            posed, offsets, rms = clocked.cameras, clocked.offsets, clocked.rms_px
+            points = on_frames(clocked.points, segments)
+    R, t, how = floor_frame(points, skeleton)
     if scale.baseline_mm is not None:
         a, b = (names.index(n) for n in scale.cameras)
         s = scale.baseline_mm / np.linalg.norm(posed[a].center - posed[b].center)
