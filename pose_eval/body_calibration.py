@@ -73,6 +73,7 @@ CLOCK_ROUNDS = 3  # scans and adjustments of the clocks, while one is held at it
 # accelerate by about 0.002 baselines per frame^2 (0.2 px here, against 1 px of keypoint noise
 # seen by several cameras); an unobserved control point is held by it.
 SMOOTHING = 0.1
+GAUGE_WEIGHT = 1e3  # px per relative change of the studio's scale in the bundle adjustment
 
 
 @dataclass(frozen=True)
@@ -157,9 +158,20 @@ def shifted(track: np.ndarray, shift: int, segments: np.ndarray) -> np.ndarray:
     return out
 
 
+def _sampson2(E: np.ndarray, pa: np.ndarray, pb: np.ndarray) -> np.ndarray:
+    """Squared Sampson distances (normalized units^2) of matches pa -> pb under E."""
+    xa = np.column_stack([pa, np.ones(len(pa))])
+    xb = np.column_stack([pb, np.ones(len(pb))])
+    Ex, Etx = xa @ E.T, xb @ E
+    return np.sum(xb * Ex, 1) ** 2 / (Ex[:, 0] ** 2 + Ex[:, 1] ** 2 + Etx[:, 0] ** 2
+                                      + Etx[:, 1] ** 2)
+
+
 def _pair(xa: np.ndarray, xb: np.ndarray, threshold: float, rng_seed: int):
     """RANSAC essential matrix of matched normalized points (T, N, 2) -> (inliers, E, mask,
-    points a, points b) or None."""
+    points a, points b, MSAC score) or None. The score, the mean over every match of its
+    squared Sampson distance capped at 3 thresholds (Torr and Zisserman, "MLESAC", CVIU 2000),
+    varies smoothly with the clock shift where an inlier count jumps with RANSAC's draws."""
     both = np.all(np.isfinite(xa), -1) & np.all(np.isfinite(xb), -1)
     pa, pb = xa[both], xb[both]
     if len(pa) < MIN_PAIR_INLIERS:
@@ -173,24 +185,36 @@ def _pair(xa: np.ndarray, xb: np.ndarray, threshold: float, rng_seed: int):
     if E is None or E.shape != (3, 3):  # several solutions stacked: none is trusted
         return None
     mask = mask.ravel().astype(bool)
-    return int(mask.sum()), E, mask, pa, pb
+    cap = (3 * threshold) ** 2
+    score = float(np.mean(np.minimum(_sampson2(E, pa, pb), cap)) / cap)
+    return int(mask.sum()), E, mask, pa, pb, score
 
 
 def pair_geometry(x: np.ndarray, a: int, b: int, max_shift: int, threshold: float,
                   segments: np.ndarray) -> dict | None:
-    """The shift d (camera b's clock ahead of a's, frames) with the most RANSAC inliers, and
-    b_from_a (R, unit t) at that shift; None if no shift gives MIN_PAIR_INLIERS."""
-    best = None
+    """The shift d (camera b's clock ahead of a's, whole frames) and b_from_a (R, unit t) at
+    that shift; None if no shift gives MIN_PAIR_INLIERS. The shift is the rounded vertex of a
+    parabola through the MSAC scores of the best shift and its neighbours (two each side):
+    a moving body fits worse the further the shift is from the truth, but a single score is
+    noisy, and near a circular walk's degeneracy neighbouring shifts score alike."""
+    found = {}
     for d in range(-max_shift, max_shift + 1):
         # b's frame g shows a's time g + d: pair a's frame g + d with b's frame g.
-        found = _pair(shifted(x[a], d, segments), x[b], threshold, 1000 * a + b)
-        if found is not None and (best is None or found[0] > best[1][0]):
-            best = (d, found)
-    if best is None or best[1][0] < MIN_PAIR_INLIERS:
+        pair = _pair(shifted(x[a], d, segments), x[b], threshold, 1000 * a + b)
+        if pair is not None and pair[0] >= MIN_PAIR_INLIERS:
+            found[d] = pair
+    if not found:
         return None
-    d, (inliers, E, mask, pa, pb) = best
+    best = min(found, key=lambda d: found[d][5])
+    near = [d for d in range(best - 2, best + 3) if d in found]
+    if len(near) >= 3:
+        c2, c1, _ = np.polyfit(near, [found[d][5] for d in near], 2)
+        if c2 > 0:  # a minimum: its vertex, if it falls among the shifts measured
+            vertex = int(np.rint(-c1 / (2 * c2)))
+            best = vertex if vertex in found and abs(vertex - best) <= 2 else best
+    inliers, E, mask, pa, pb, _ = found[best]
     _, R, t, _ = cv2.recoverPose(E, pa, pb, np.eye(3), mask=mask.astype(np.uint8)[:, None])
-    return {"shift": d, "inliers": inliers, "R": R, "t": t.ravel()}
+    return {"shift": best, "inliers": inliers, "R": R, "t": t.ravel()}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -339,7 +363,12 @@ class _Bundle:
             triples = idx[ok]
         self.triples = triples
         self.smoothing = SMOOTHING * float(np.mean([[c.fx, c.fy] for c in cameras]))
-        self.n_res = self.n_obs + 3 * len(triples)
+        # The gauge: camera 0 is held at the identity, and the distance to the camera farthest
+        # from it at its start (a scale for the whole studio; without it the solver may drift
+        # along the scale it cannot see until the reconstruction collapses).
+        self.gauge = 1 + int(np.argmax([np.linalg.norm(c.tvec) for c in cameras[1:]]))
+        self.gauge_mm = float(np.linalg.norm(cameras[self.gauge].tvec))
+        self.n_res = self.n_obs + 3 * len(triples) + 1
 
     def pack(self, cameras, offsets, points) -> np.ndarray:
         poses = [np.concatenate([cam.rvec, cam.tvec]) for cam in cameras[1:]]
@@ -413,6 +442,12 @@ class _Bundle:
                     rows.append(r.ravel())
                     cols.append((p0 + 3 * k[:, None] + np.arange(3)).ravel())
                     vals.append(np.full(r.size, coef * self.smoothing))
+        t = cams[self.gauge].tvec
+        res.append(np.array([GAUGE_WEIGHT * (np.linalg.norm(t) / self.gauge_mm - 1)]))
+        if jacobian:
+            rows.append(np.full(3, row + 3 * len(self.triples)))
+            cols.append(6 * (self.gauge - 1) + 3 + np.arange(3))
+            vals.append(GAUGE_WEIGHT * t / (np.linalg.norm(t) * self.gauge_mm))
         r = np.concatenate(res) if res else np.zeros(0)
         if not jacobian:
             return r
@@ -534,6 +569,12 @@ def _robust_start(posed: list[Camera], sync: np.ndarray, threshold_px: float) ->
                                    axis=-1) for c, cam in enumerate(posed)])
     err = np.where(inliers & np.isfinite(err), err, 0.0)
     points[err.max(axis=0) > 10 * threshold_px] = np.nan
+    # A joint behind a camera that saw it (its view an outlier the DLT was not told of) would
+    # start that view's residual at any size, near its pole: missing too.
+    seen = np.all(np.isfinite(sync), -1)
+    depth = np.stack([cam.world_to_cam(points.reshape(-1, 3))[:, 2].reshape(T, N)
+                      for cam in posed])
+    points[np.any(seen & ~(depth > 0), axis=0)] = np.nan
     return points
 
 
