@@ -166,6 +166,14 @@ def rest_skeleton(model: smplx.SMPL, betas=None) -> Skeleton:
     return Skeleton(joints.double().numpy(), float(v_shaped[:, 1].min()), tuple(model.parents.tolist()))
 
 
+def rest_pose_mm(model: smplx.SMPL, betas=None) -> tuple[np.ndarray, np.ndarray, float]:
+    """(joints (24, 3), vertices (V, 3), stature) of a shape at rest, in mm: the stature is its
+    lowest to its highest vertex."""
+    joints, vertices = forward(model, np.zeros((1, 69)), np.zeros((1, 3)), betas=betas)
+    joints, vertices = to_mm(joints[0]), to_mm(vertices[0])
+    return joints, vertices, float(np.ptp(vertices[:, 1]))
+
+
 def to_mm(metres) -> np.ndarray:
     """Body coordinates (m, smplx) to SynthCal's millimetres."""
     return np.asarray(metres, dtype=np.float64) * MM_PER_M

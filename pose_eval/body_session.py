@@ -23,7 +23,7 @@ import numpy as np
 from stereo_bench.core.camera import Camera
 from stereo_bench.run.exchange import rebased
 
-from .body import forward, to_mm
+from .body import rest_pose_mm
 from .body_calibration import BodyCalibration, Scale, Skeleton, calibrate_from_body
 from .metrics import studio_errors
 from .motion import FOOT_JOINTS, JOINT
@@ -90,9 +90,7 @@ LAYOUT_JOINTS = {  # per layout: joint index by name, its feet (ankles, toes, he
 def skeleton(layout: str, model, people: int) -> tuple[Skeleton, float]:
     """(the tracks' feet, heads and the first person's height chain for ``people`` bodies of
     ``layout`` side by side, the SMPL body's stature mm at rest, lowest to highest vertex)."""
-    joints, vertices = forward(model, np.zeros((1, 69)), np.zeros((1, 3)))
-    joints, vertices = to_mm(joints[0]), to_mm(vertices[0])
-    stature = float(np.ptp(vertices[:, 1]))
+    joints, _, stature = rest_pose_mm(model)
     rest = sum(w * np.linalg.norm(joints[JOINT[a]] - joints[JOINT[b]]) for a, b, w in _CHAIN)
     index, foot, pairs = LAYOUT_JOINTS[layout]
     J = LAYOUTS[layout]

@@ -66,15 +66,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _scale(args) -> Scale:
-    if args.height_mm is not None:
-        return Scale(height_mm=args.height_mm)
-    a, b, mm = args.baseline
+    """--height-mm or --baseline as a Scale; its refusal names the option."""
+    option = "--height-mm" if args.height_mm is not None else "--baseline"
     try:
-        value = float(mm)
-    except ValueError:
-        raise ValueError(f"--baseline: expected a length in mm after the two cameras, got "
-                         f"{mm!r}") from None
-    return Scale(baseline_mm=value, cameras=(a, b))
+        if args.height_mm is not None:
+            return Scale(height_mm=args.height_mm)
+        a, b, mm = args.baseline
+        return Scale(baseline_mm=float(mm), cameras=(a, b))
+    except ValueError as e:
+        raise ValueError(f"{option}: {str(e).removeprefix('scale: ')}") from None
 
 
 def check(args) -> None:

@@ -59,7 +59,7 @@ from stereo_bench.config.schema import load_rig
 from stereo_bench.scene.rig import ground_axes, volume_centre, world_up
 from stereo_bench.io.rundir import RunPaths
 
-from .body import forward, load_body_model, rest_skeleton, to_mm
+from .body import forward, load_body_model, rest_pose_mm, rest_skeleton, to_mm
 from .motion import make_motion
 
 VIEW_MARGIN = 0.05  # fraction of the image size kept free on every side
@@ -232,9 +232,8 @@ def make_scene(cameras: list[Camera], motion: str, frames: int, fps: float = 30.
     model = model if model is not None else load_body_model()
     m = make_motion(motion, frames, fps=fps, skeleton=rest_skeleton(model))
     joints, vertices = forward(model, m.body_pose, m.global_orient, m.transl, m.betas)
-    rest = forward(model, np.zeros((1, 69)), np.zeros((1, 3)), betas=m.betas)[1][0]
     return place_body(cameras, joints, vertices, model.faces, distance_mm,
-                      stature_mm=float(to_mm(np.ptp(rest[:, 1]))))
+                      stature_mm=rest_pose_mm(model, m.betas)[2])
 
 
 @dataclass(frozen=True)
@@ -263,8 +262,7 @@ def seen_by_clocks(cameras: list[Camera], people: list[Person], frames: int, fps
     offsets = np.zeros(len(cameras)) if offsets_ms is None else np.asarray(offsets_ms, float)
     if offsets.shape != (len(cameras),) or not np.all(np.isfinite(offsets)):
         raise ValueError(f"offsets_ms: expected {len(cameras)} finite offsets, got {offsets_ms!r}")
-    rest = forward(model, np.zeros((1, 69)), np.zeros((1, 3)))[1][0]
-    stature = float(to_mm(np.ptp(rest[:, 1])))
+    stature = rest_pose_mm(model)[2]
     placed = None
     views = [[None] * len(people) for _ in cameras]
     for p, person in enumerate(people):
