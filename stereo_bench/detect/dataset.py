@@ -6,6 +6,7 @@ detections' error against the truth.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -14,7 +15,7 @@ import cv2
 import numpy as np
 
 from ..core.files import read_arrays, write_npz
-from .boards import detect, failed_detection, resolve_method
+from .boards import Detection, detect, failed_detection, resolve_method
 
 
 # ----------------------------------------------------------------------------- datasets
@@ -55,6 +56,50 @@ class CameraDetections:
                              f"({e})") from None
 
 
+class DatasetDetections:
+    """Detections of a dataset's images, taken one image at a time: from its files
+    (``detect_dataset``) or from the renderer as each image is made (``write_dataset``'s
+    ``on_image``: the same 8-bit pixels the lossless PNG holds, without reading it back)."""
+
+    def __init__(self, pattern, method: str | None = None):
+        self.pattern = pattern
+        self.method = resolve_method(pattern, method)
+        self._frames: dict[tuple[int, int], Detection] = {}
+        self.seconds = 0.0  # spent detecting
+
+    def add(self, camera: int, frame: int, image) -> None:
+        """Detect in ``image`` (8-bit), or record ``image``'s loading error (an OSError or
+        ValueError instance) as the frame's reason."""
+        start = time.perf_counter()
+        try:
+            if isinstance(image, Exception):
+                raise image
+            det = detect(image, self.pattern, self.method)
+        except (OSError, ValueError) as e:  # FileNotFoundError is an OSError
+            det = failed_detection(self.pattern, str(e))
+        self._frames[camera, frame] = det
+        self.seconds += time.perf_counter() - start
+
+    def result(self, cameras: list[str], frames: int) -> list[CameraDetections]:
+        """One ``CameraDetections`` per camera; ValueError if an image was not given."""
+        missing = [(c, f) for c in range(len(cameras)) for f in range(frames)
+                   if (c, f) not in self._frames]
+        if missing:
+            c, f = missing[0]
+            raise ValueError(f"no detection of camera {cameras[c]!r} frame {f} "
+                             f"({len(missing)} images missing)")
+        out = []
+        for c, name in enumerate(cameras):
+            dets = [self._frames[c, f] for f in range(frames)]
+            out.append(CameraDetections(
+                name, self.pattern.kind, self.method,
+                np.stack([d.points for d in dets]) if dets else
+                np.full((0, len(self.pattern.ids()), 2), np.nan),
+                np.array([d.found for d in dets], dtype=bool), self.pattern.ids(),
+                {f: d.error for f, d in enumerate(dets) if not d.found}))
+        return out
+
+
 def detect_dataset(dataset, method: str | None = None,
                    progress: Callable[[int, int], None] | None = None) -> list[CameraDetections]:
     """Detect the board in every image of a ``Dataset``; one ``CameraDetections`` per camera.
@@ -62,29 +107,20 @@ def detect_dataset(dataset, method: str | None = None,
     A frame that fails (board not found, image missing or unreadable) is recorded with its reason
     and the sweep goes on.  ``progress(done, total)`` is called after each image.
     """
-    pattern = dataset.pattern
-    method = resolve_method(pattern, method)
-    n, frames = len(pattern.ids()), dataset.frames
+    frames = dataset.frames
+    found = DatasetDetections(dataset.pattern, method)
     total, done = len(dataset.cameras) * frames, 0
-    result = []
-    for c, camera in enumerate(dataset.cameras):
-        points = np.full((frames, n, 2), np.nan)
-        found = np.zeros(frames, dtype=bool)
-        errors = {}
+    for c in range(len(dataset.cameras)):
         for f in range(frames):
             try:
-                det = detect(dataset.image(c, f), pattern, method)
+                image = dataset.image(c, f)
             except (OSError, ValueError) as e:  # FileNotFoundError is an OSError
-                det = failed_detection(pattern, str(e))
-            points[f], found[f] = det.points, det.found
-            if not det.found:
-                errors[f] = det.error
+                image = e
+            found.add(c, f, image)
             done += 1
             if progress:
                 progress(done, total)
-        result.append(CameraDetections(camera.name, pattern.kind, method, points, found,
-                                       pattern.ids(), errors))
-    return result
+    return found.result([c.name for c in dataset.cameras], frames)
 
 
 def detection_errors(det: CameraDetections, gt_points: np.ndarray,

@@ -31,7 +31,8 @@ from ..core.camera import Camera
 from ..core.poses import matrix_to_rodrigues
 from ..config.schema import CalibrationConfig
 from ..scene.dataset import Dataset
-from ..detect.dataset import CameraDetections, detect_dataset, detection_errors
+from ..detect.dataset import (CameraDetections, DatasetDetections, detect_dataset,
+                              detection_errors)
 from ..detect.boards import resolve_method
 from ..io import opencv_yaml
 from .metrics import (parameter_errors, parameter_rmse, pose_errors, projection_difference, rpe_rms,
@@ -87,12 +88,20 @@ def detections_fingerprint(ds: Dataset) -> str:
     return fingerprint("detections", ds.fingerprint, resolve_method(ds.pattern, None))
 
 
-def load_or_detect(ds: Dataset, trial: TrialPaths, progress=None,
-                   notes: Notes | None = None) -> tuple[list[CameraDetections], float, str]:
+def load_or_detect(ds: Dataset, trial: TrialPaths, progress=None, notes: Notes | None = None,
+                   detected: DatasetDetections | None = None,
+                   ) -> tuple[list[CameraDetections], float, str]:
     """Detections of every camera, reused when ``trial``'s marker was written for this dataset,
     the time the detection took when it ran (kept in the marker, so reuse does not hide it),
-    and the detections' fingerprint."""
+    and the detections' fingerprint. ``detected``: the dataset's detections already made (as
+    it was rendered), saved as this stage's."""
     fp = detections_fingerprint(ds)
+    if detected is not None:
+        if detected.method != resolve_method(ds.pattern, None):
+            raise ValueError(f"detections by {detected.method!r} given for a dataset of "
+                             f"{ds.pattern.kind}")
+        return _saved(trial, detected.result([c.name for c in ds.cameras], ds.frames),
+                      detected.seconds, fp)
     marker = reusable(trial.detections_done, fp, notes, "detection")
     if marker is not None:
         try:
@@ -101,10 +110,13 @@ def load_or_detect(ds: Dataset, trial: TrialPaths, progress=None,
         except (ValueError, KeyError, TypeError) as e:
             if notes:
                 notes.add(f"{trial.detections}: {e}; redoing the detection stage")
-    trial.detections_done.unlink(missing_ok=True)
     start = time.perf_counter()
     dets = detect_dataset(ds, progress=progress)
-    seconds = time.perf_counter() - start
+    return _saved(trial, dets, time.perf_counter() - start, fp)
+
+
+def _saved(trial: TrialPaths, dets: list[CameraDetections], seconds: float, fp: str):
+    trial.detections_done.unlink(missing_ok=True)
     for det in dets:
         det.save(trial.detection(det.camera))
     write_json(trial.detections_done,  # marks completion
@@ -259,8 +271,10 @@ def clear_calibrations(trial: TrialPaths) -> None:
 
 def evaluate_dataset(ds: Dataset, methods: list[str], trial: TrialPaths,
                      calibration: CalibrationConfig, progress=None,
-                     notes: Notes | None = None) -> dict:
-    """Detect, calibrate with each method, score; write everything under ``trial``.
+                     notes: Notes | None = None,
+                     detected: DatasetDetections | None = None) -> dict:
+    """Detect (or take the detections ``detected`` as the dataset was rendered), calibrate with
+    each method, score; write everything under ``trial``.
 
     ``calibration``: the settings of the calibration stage, from the rig file of the run (they
     may have changed since the images were rendered; the dataset does not hold them).
@@ -272,7 +286,7 @@ def evaluate_dataset(ds: Dataset, methods: list[str], trial: TrialPaths,
     """
     for m in methods:  # fail early on a typo, before any work
         get_calibrator(m)
-    dets, detect_s, det_fp = load_or_detect(ds, trial, progress, notes)
+    dets, detect_s, det_fp = load_or_detect(ds, trial, progress, notes, detected)
     clear_calibrations(trial)
     start = time.perf_counter()
     gt = ds.ground_truth

@@ -22,7 +22,7 @@ from ..calibrate.base import MIN_POINTS_PER_VIEW, fitted_shape
 from ..core.camera import Camera
 from ..config.schema import CalibrationConfig, RigConfig
 from ..scene.dataset import Dataset, dataset_fingerprint, write_dataset
-from ..detect.dataset import CameraDetections
+from ..detect.dataset import CameraDetections, DatasetDetections
 from ..evaluate.stage import (detections_fingerprint, evaluate_dataset, metrics_fingerprint,
                               unusable_view)
 from ..multiview.orientation import agree, numbered_like
@@ -268,23 +268,26 @@ def rig_fingerprint(metrics_fp: str, method: str, settings: dict | None = None) 
 
 
 def dataset_of(cfg: RigConfig, trial: TrialPaths, dataset_dir: Path | None, progress,
-             notes: Notes) -> Dataset:
+               notes: Notes) -> tuple[Dataset, DatasetDetections | None]:
     """The trial's dataset: an existing one (``dataset_dir``), or the trial's own, reused when
-    it was rendered from this configuration and rendered again otherwise."""
+    it was rendered from this configuration and rendered again otherwise; with the detections
+    of its images when it was rendered here (each image detected as it was made, not read back
+    from its file), else None."""
     if dataset_dir is not None:
-        return Dataset.load(dataset_dir)
+        return Dataset.load(dataset_dir), None
     paths = trial.dataset
     try:
         ds = Dataset.load(paths.root)
         if ds.fingerprint == dataset_fingerprint(cfg):
-            return ds
+            return ds, None
         notes.stage_redone(f"{paths.manifest}: rendered from another configuration (the rig "
                            f"file changed); rendering again")
     except FileNotFoundError:
         pass
     except UnreadableFileError as e:
         notes.stage_redone(f"{e}; rendering again")
-    return write_dataset(cfg, paths.root, progress)
+    found = DatasetDetections(cfg.pattern.build())
+    return write_dataset(cfg, paths.root, progress, on_image=found.add), found
 
 
 def run_trial(cfg: RigConfig, out: Path, methods: list[str], progress=None,
@@ -297,11 +300,12 @@ def run_trial(cfg: RigConfig, out: Path, methods: list[str], progress=None,
     """
     trial = RunPaths(Path(out)).trial(cfg.seed)
     notes = Notes()
-    ds = dataset_of(cfg, trial, dataset_dir, progress, notes)
+    ds, detected = dataset_of(cfg, trial, dataset_dir, progress, notes)
     expected = metrics_fingerprint(detections_fingerprint(ds), methods, cfg.calibration)
     report = reusable(trial.metrics, expected, notes, "calibration")
     if report is None:
-        report = evaluate_dataset(ds, methods, trial, cfg.calibration, progress, notes)
+        report = evaluate_dataset(ds, methods, trial, cfg.calibration, progress, notes,
+                                  detected)
     report["rig"] = {}
     if with_rig and len(ds.cameras) >= 2:
         for m in methods:

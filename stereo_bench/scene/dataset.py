@@ -124,8 +124,12 @@ class UnusableRigError(ConfigError):
     """A valid rig file whose cameras would never see the board well enough to detect it."""
 
 
-def write_dataset(cfg: RigConfig, out: Path, progress=None) -> "Dataset":
+def write_dataset(cfg: RigConfig, out: Path, progress=None, on_image=None) -> "Dataset":
     """Render every camera and frame of ``cfg`` into ``out`` and write the ground truth.
+
+    ``on_image(camera index, frame, image)`` is called with each image once it is written (a
+    stage that needs the pixels takes them here rather than reading the files back); its time
+    is not counted in the dataset's render time.
 
     The ground truth is computed first: a rig in which no camera would see the board larger
     than ``MIN_BOARD_SPAN_PX`` is refused (UnusableRigError) before anything is rendered; a camera
@@ -156,6 +160,7 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None) -> "Dataset":
     total = len(rig.cameras) * len(rig.trajectory)
     done = 0
     t0 = time.perf_counter()
+    elsewhere = 0.0  # in on_image
     with _renderers(cfg, paths) as make_renderer:
         for c, cam in enumerate(rig.cameras):
             settings = render_settings(cfg, rig, cam)
@@ -166,6 +171,10 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None) -> "Dataset":
             for f in range(len(rig.trajectory)):
                 image = renderer.render(R[f], t[f], frame_rng(cfg.seed, c, f), (omega[f], v[f]))
                 write_png(paths.image(cam.name, f), image)
+                if on_image is not None:
+                    hook_start = time.perf_counter()
+                    on_image(c, f, image)
+                    elsewhere += time.perf_counter() - hook_start
                 done += 1
                 if progress:
                     progress(done, total)
@@ -194,7 +203,7 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None) -> "Dataset":
     write_text(paths.config, yaml.safe_dump(resolved, sort_keys=False))
     write_json(paths.cameras, [c.to_dict() for c in cams])
     # Timing lives outside the manifest so that the same config and seed give identical files.
-    write_json(paths.timing, {"render_s": time.perf_counter() - t0})
+    write_json(paths.timing, {"render_s": time.perf_counter() - t0 - elsewhere})
     write_json(paths.manifest, with_outputs({
         "schema_version": SCHEMA_VERSION,
         "fingerprint": dataset_fingerprint(cfg),

@@ -17,7 +17,8 @@ import yaml
 from stereo_bench.core.poses import rodrigues_to_matrix
 from stereo_bench.config.schema import load_rig, parse_rig
 from stereo_bench.scene.dataset import write_dataset
-from stereo_bench.detect.dataset import CameraDetections, detect_dataset, detection_errors
+from stereo_bench.detect.dataset import (CameraDetections, DatasetDetections, detect_dataset,
+                                         detection_errors)
 from stereo_bench.detect.boards import detect
 from stereo_bench.core.patterns import AsymmetricCircles, Charuco, Checkerboard, SymmetricCircles
 from stereo_bench.render import AnalyticRenderer, PixelRays
@@ -219,6 +220,24 @@ def test_dataset_detection_records_failures_and_round_trips(tmp_path):
     assert np.array_equal(loaded.found, result.found) and loaded.errors == result.errors
     with pytest.raises(ValueError, match="not a detections file"):
         CameraDetections.load(missing)
+
+
+def test_detections_taken_as_rendered_equal_those_read_back(tmp_path):
+    """The run's render-to-detect path (each image detected as it is made) gives the same
+    detections as reading the dataset's PNG files back, and says which image it lacks."""
+    data = yaml.safe_load((CONFIGS / "wide_pair.yaml").read_text())
+    data["trajectory"]["frames"] = 4
+    data["pattern"] = {"kind": "charuco"}
+    cfg = parse_rig(data)
+    taken = DatasetDetections(cfg.pattern.build())
+    dataset = write_dataset(cfg, tmp_path / "ds", on_image=taken.add)
+    names = [c.name for c in dataset.cameras]
+    for fresh, read in zip(taken.result(names, dataset.frames), detect_dataset(dataset)):
+        assert fresh.found.any() and fresh.method == read.method
+        assert np.array_equal(fresh.points, read.points, equal_nan=True)
+        assert np.array_equal(fresh.found, read.found) and fresh.errors == read.errors
+    with pytest.raises(ValueError, match="frame 4"):
+        taken.result(names, dataset.frames + 1)
 
 
 def test_detection_errors_counts_flips_and_keeps_them_out_of_the_statistics():
