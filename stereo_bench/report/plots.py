@@ -19,6 +19,7 @@ coverage by the features, and its projection uncertainty over the image.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import matplotlib
@@ -368,8 +369,11 @@ def plot_capture_camera(results: dict, est, frame_names: list[str], path: Path) 
     flagged = set(views["flagged"])
     colours = ["tab:red" if v in flagged else "tab:blue" for v in views["view_ids"]]
     ax.bar(range(len(views["rms_px"])), views["rms_px"], color=colours)
-    ax.set_xticks(range(len(views["view_ids"])),
-                  [frame_names[v].replace("frame ", "") for v in views["view_ids"]],
+    # At most about 40 labelled ticks: a label per bar of a long capture is unreadable, and
+    # laying out 127 of them took most of the figure's time (seconds per camera in a sweep).
+    every = max(1, math.ceil(len(views["view_ids"]) / 40))
+    ax.set_xticks(range(0, len(views["view_ids"]), every),
+                  [frame_names[v].replace("frame ", "") for v in views["view_ids"][::every]],
                   fontsize=6, rotation=90)
     # Each view's own threshold (a view of few points is noisier, so it may fit worse).
     limit = np.array([np.nan if x is None else x for x in views["threshold_px"]], dtype=float)
