@@ -230,7 +230,7 @@ def refine_saddles(gray, points: np.ndarray, object_xy: np.ndarray, square_mm: f
             live, c, box_lo, box_hi = (a[~failed & ~out] for a in (live, c, box_lo, box_hi))
             if not len(live):
                 break
-            shift, solvable = _saddle_steps(moments[live], origin[live], q[c], A_inv[c],
+            shift, solvable = _saddle_steps(moments, live, origin[live], q[c], A_inv[c],
                                             lim[c], box_lo, box_hi, band_mm, (width, height))
             q[c[solvable]] += shift[solvable]
             steps[c] += 1
@@ -269,12 +269,12 @@ def _gradient_moments(gray, origin: np.ndarray, size: int, sigma: float) -> np.n
     return moments.reshape(len(origin), 5, size * size)
 
 
-def _saddle_steps(moments, origin, q, A_inv, lim, box_lo, box_hi, band_mm, image_size):
+def _saddle_steps(moments, rows, origin, q, A_inv, lim, box_lo, box_hi, band_mm, image_size):
     """One step of the saddle fit for M corners at once: shifts (M, 2) px and whether each
     corner's normal matrix was well enough conditioned to solve (M,) bool.
 
-    ``moments`` (M, 5, S * S): ``_gradient_moments`` of squares with top-left pixels ``origin``
-    (M, 2); ``q`` (M, 2) the current estimates; ``A_inv`` (M, 2, 2) px -> board mm; ``lim``
+    ``moments`` (K, 5, S * S): ``_gradient_moments``, of which the M ``rows`` are the corners'
+    squares, with top-left pixels ``origin`` (M, 2); ``q`` (M, 2) the current estimates; ``A_inv`` (M, 2, 2) px -> board mm; ``lim``
     (M, 2) the window's half-extents in mm; ``box_lo``, ``box_hi`` (M, 2) its bounding box (end
     exclusive) in px.
     """
@@ -298,10 +298,9 @@ def _saddle_steps(moments, origin, q, A_inv, lim, box_lo, box_hi, band_mm, image
     near_edges = np.zeros(use.shape, bool)  # within band_mm of either edge line
     for axis in range(2):
         tx, ty = scale[:, axis, :1] * dx, scale[:, axis, 1:] * dy
-        theta = np.abs(tx[:, None, :] + ty[:, :, None])
-        use &= theta <= 0.5 * np.pi
+        use &= _phase_within(tx, ty, 0.5 * np.pi)
         if band_mm is not None:
-            near_edges |= theta < 0.5 * np.pi * band_mm / lim[:, axis, None, None]
+            near_edges |= _phase_within(tx, ty, 0.5 * np.pi * band_mm / lim[:, axis, None])
         cosines.append(np.stack([np.cos(ty), -np.sin(ty)], -1) @ np.stack([np.cos(tx),
                                                                              np.sin(tx)], 1))
     if band_mm is not None:
@@ -310,7 +309,8 @@ def _saddle_steps(moments, origin, q, A_inv, lim, box_lo, box_hi, band_mm, image
     w *= cosines[1]
     w *= w
     w *= use
-    sums = (moments @ w.reshape(len(q), -1, 1))[..., 0]  # (M, 5)
+    # Row by row: gathering the corners' rows of the stack would copy it at every step.
+    sums = np.stack([moments[r] @ w_r for r, w_r in zip(rows, w.reshape(len(q), -1))])
     normal = sums[:, [0, 1, 1, 2]].reshape(-1, 2, 2)
     # sum w g g^T (p - q), the pixel p relative to the square's top-left.
     rhs = sums[:, 3:] - (normal @ (q - origin)[:, :, None])[..., 0]
@@ -318,3 +318,11 @@ def _saddle_steps(moments, origin, q, A_inv, lim, box_lo, box_hi, band_mm, image
     shift = np.zeros_like(q)
     shift[solvable] = np.linalg.solve(normal[solvable], rhs[solvable, :, None])[..., 0]
     return shift, solvable
+
+
+def _phase_within(tx: np.ndarray, ty: np.ndarray, bound) -> np.ndarray:
+    """(M, S rows, S columns) bool: |tx (M, S) of the column + ty (M, S) of the row| <= bound
+    (a number or (M, 1)), by two comparisons against the row's limits rather than forming the
+    sum over the window."""
+    tx = tx[:, None, :]
+    return (tx <= (bound - ty)[:, :, None]) & (tx >= (-bound - ty)[:, :, None])

@@ -110,8 +110,11 @@ def test_saddle_steps_of_all_corners_equal_one_corner_at_a_time(band_mm):
     assert box_lo.min() >= 1 and np.all(box_hi <= [639, 479])
     origin = box_lo - 3
     size = int((box_hi - origin).max()) + 3
-    shift, solvable = _saddle_steps(_gradient_moments(gray, origin, size, sigma), origin, start,
-                                    np.linalg.inv(A), lim, box_lo, box_hi, band_mm, (640, 480))
+    # The corners' rows of a stack that holds them in reverse order after one other square.
+    stack = _gradient_moments(gray, np.concatenate([origin[:1], origin[::-1]]), size, sigma)
+    rows = np.arange(len(origin), 0, -1)
+    shift, solvable = _saddle_steps(stack, rows, origin, start, np.linalg.inv(A), lim, box_lo,
+                                    box_hi, band_mm, (640, 480))
     assert solvable.all()
     blurred = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), sigma).astype(float)
     gradient = np.zeros((2,) + gray.shape)
