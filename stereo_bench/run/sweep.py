@@ -43,6 +43,7 @@ import uuid
 from contextlib import contextmanager
 from pathlib import Path
 
+import cv2
 
 from ..config.schema import RigConfig
 from ..report.html import provenance, write_html, write_run_html
@@ -62,6 +63,9 @@ def _run_config(args) -> dict:
 
     cfg_json, out, methods, trials = args
     cfg = RigConfig.model_validate(cfg_json)
+    # One configuration per worker thread: OpenCV's own pool would put as many threads as
+    # cores in every worker (its BLAS is held to one by the nanny's environment).
+    cv2.setNumThreads(1)
     t0 = time.perf_counter()
     try:
         with locked(out):
