@@ -274,9 +274,9 @@ def _saddle_steps(moments, rows, origin, q, A_inv, lim, box_lo, box_hi, band_mm,
     corner's normal matrix was well enough conditioned to solve (M,) bool.
 
     ``moments`` (K, 5, S * S): ``_gradient_moments``, of which the M ``rows`` are the corners'
-    squares, with top-left pixels ``origin`` (M, 2); ``q`` (M, 2) the current estimates; ``A_inv`` (M, 2, 2) px -> board mm; ``lim``
-    (M, 2) the window's half-extents in mm; ``box_lo``, ``box_hi`` (M, 2) its bounding box (end
-    exclusive) in px.
+    squares, with top-left pixels ``origin`` (M, 2); ``q`` (M, 2) the current estimates;
+    ``A_inv`` (M, 2, 2) px -> board mm; ``lim`` (M, 2) the window's half-extents in mm;
+    ``box_lo``, ``box_hi`` (M, 2) its bounding box (end exclusive) in px.
     """
     size = math.isqrt(moments.shape[2])
     width, height = image_size
