@@ -49,7 +49,7 @@ from ..core.board_shape import BoardShape
 from ..core.camera import Camera, project_cam_with_jacobians
 from ..core.poses import rodrigues_to_matrix, view_toward
 from .imaging import (MAX_MOTION_SUBFRAMES, Light, Motion, Optics, Sensor, blinn_phong, defocus,
-                      expose, vignetting_map)
+                      record, sensor_response, vignetting_map)
 from .texels import (OUTSIDE, cells_touching, gaussian_noise, inverse_2x2, linear_weights,
                      plane_texels, sample_texels)
 
@@ -274,6 +274,7 @@ class AnalyticRenderer:
         self._size = np.asarray(pattern.size_mm, dtype=np.float64)
         self._levels: OrderedDict[int, _Level] = OrderedDict()
         self._vignette: np.ndarray | None = None  # built on first use (_vignetting)
+        self._background = None  # built on first use (_background_response)
 
     # --- public -------------------------------------------------------------------------------
     def render(self, R: np.ndarray, t: np.ndarray, rng: np.random.Generator | None = None,
@@ -585,31 +586,52 @@ class AnalyticRenderer:
                 return cv2.addWeighted(canvas, 1 / 256, noise, st.sensor.noise_sigma, 0,
                                        dtype=cv2.CV_8U)
             return cv2.convertScaleAbs(canvas, alpha=1 / 256)
-        image = canvas.astype(np.float32) * np.float32(1 / 256)  # both are in 1/256 levels
+        # Outside the board's box the image is the uniform background, which defocus and blur
+        # leave unchanged: only the box is filtered and exposed per frame, the background's
+        # response (vignetted) is the renderer's once, and only the noise covers every pixel.
         optics = st.optics
+        H, W = canvas.shape
+        reach = 0.0
         if optics.f_number is not None and strips:
             # The blur's reach from the coarse nodes, then the exact radius per pixel in the box.
             nodes = optics.circle_of_confusion_px(self._plane_depth(view.node_xy, R, t),
                                                   self.camera.fx)
             finite = np.isfinite(nodes)
             reach = min(0.5 * nodes[finite].max() if finite.any() else 0.0, _MAX_DEFOCUS_PX)
-            box = self._board_box(strips, int(math.ceil(reach)) + 2)
-            rows, cols = box
-            xy = view.xy[rows.start + 1:rows.stop + 1, cols.start + 1:cols.stop + 1]
+        defocus_margin = int(math.ceil(reach)) + 2 if optics.f_number is not None else 0
+        blur_margin = int(math.ceil(4 * optics.blur_px)) + 1 if optics.blur_px > 0 else 0
+        rows, cols = self._board_box(strips, max(defocus_margin, blur_margin)) if strips \
+            else (slice(0, 0), slice(0, 0))
+
+        def within(margin):  # the board's box widened by margin, in the region's coordinates
+            r, c = self._board_box(strips, margin)
+            return slice(r.start - rows.start, r.stop - rows.start), \
+                slice(c.start - cols.start, c.stop - cols.start)
+
+        region = canvas[rows, cols].astype(np.float32) * np.float32(1 / 256)  # 1/256 levels
+        if optics.f_number is not None and strips:
+            box = within(defocus_margin)
+            xy = view.xy[rows.start + 1:rows.stop + 1, cols.start + 1:cols.stop + 1][box]
             radius = 0.5 * optics.circle_of_confusion_px(self._plane_depth(xy, R, t),
                                                          self.camera.fx)
             # A pixel of the box whose ray never meets the board's plane (a board seen nearly
             # edge-on) has no depth: the board is not there, nothing to blur.
             radius = np.where(np.isfinite(radius), radius, 0.0)
-            image[box] = defocus(image[box], np.minimum(radius, reach).astype(np.float32))
+            region[box] = defocus(region[box], np.minimum(radius, reach).astype(np.float32))
         if optics.blur_px > 0 and strips:
-            box = self._board_box(strips, int(math.ceil(4 * optics.blur_px)) + 1)
-            image[box] = cv2.GaussianBlur(image[box], (0, 0), optics.blur_px,
-                                          borderType=cv2.BORDER_REPLICATE)
+            box = within(blur_margin)
+            region[box] = cv2.GaussianBlur(region[box], (0, 0), optics.blur_px,
+                                           borderType=cv2.BORDER_REPLICATE)
         if optics.corner_illumination < 1.0:
-            image *= self._vignetting()
-        noise = gaussian_noise(rng, image.shape) if st.sensor.noisy else None
-        return expose(image, st.sensor, st.white_level, noise)
+            region *= self._vignetting()[rows, cols]
+        noise = gaussian_noise(rng, (H, W)) if st.sensor.noisy else None
+        background, background_sd = self._background_response()
+        dn = background.copy() if background_sd is None else background_sd * noise + background
+        mean, sd = sensor_response(region, st.sensor, st.white_level)
+        if sd is not None:
+            mean += sd * noise[rows, cols]
+        dn[rows, cols] = mean
+        return record(dn, st.sensor, st.white_level)
 
     def _board_box(self, strips: list, margin: int) -> tuple[slice, slice]:
         """The rows and columns of every strip drawn, widened by ``margin`` px (the rest of the
@@ -631,6 +653,20 @@ class AnalyticRenderer:
             depth = (n @ t) / (xy[..., 0] * n[0] + xy[..., 1] * n[1] + n[2])
         depth[~(depth > 0)] = np.inf
         return depth
+
+    def _background_response(self) -> tuple[np.ndarray, np.ndarray | np.float32 | None]:
+        """The sensor's (mean, sd) (imaging.sensor_response) of the background seen through
+        the vignetting, (H, W) float32 (built once per renderer)."""
+        if self._background is None:
+            st = self.settings
+            H, W = self.camera.height, self.camera.width
+            level = np.float32(round(st.background * 256)) * np.float32(1 / 256)
+            irradiance = np.full((H, W), level, dtype=np.float32)
+            self._surround(irradiance)
+            if st.optics.corner_illumination < 1.0:
+                irradiance *= self._vignetting()
+            self._background = sensor_response(irradiance, st.sensor, st.white_level)
+        return self._background
 
     def _vignetting(self) -> np.ndarray:
         """(H, W) float32 relative illumination of each pixel (built once per renderer)."""

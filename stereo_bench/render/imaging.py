@@ -213,24 +213,47 @@ def expose(irradiance: np.ndarray, sensor: Sensor, white_level: float, noise: np
     additive noise: their sum is Gaussian with the summed variance), required when
     ``sensor.noisy``.
     """
+    dn, sd = sensor_response(irradiance, sensor, white_level)
+    if sd is not None:
+        dn += sd * noise
+    return record(dn, sensor, white_level)
+
+
+def sensor_response(irradiance: np.ndarray, sensor: Sensor, white_level: float
+                    ) -> tuple[np.ndarray, np.ndarray | np.float32 | None]:
+    """(mean, sd): the grey levels (H, W) float32 the sensor reads from ``irradiance`` before
+    its noise, and the noise's standard deviation in grey levels (per pixel for the photon
+    model, one number for additive noise alone, None without noise). Each pixel's pair
+    depends on its irradiance alone, so a region of constant irradiance can be computed once
+    (:meth:`AnalyticRenderer` does so for the background)."""
     s = sensor
     f32 = np.float32
     if s.full_well_e is None:
-        dn = irradiance * f32(s.gain)
-        if s.noise_sigma > 0:
-            dn += f32(s.noise_sigma) * noise
-    else:
-        # Electrons per grey level of the noise-free image: the white print collects
-        # exposure * full_well electrons.
-        e_per_dn = s.exposure * s.full_well_e / white_level
-        to_dn = s.gain / e_per_dn
-        electrons = np.maximum(irradiance * f32(e_per_dn), f32(0))
-        # Variance in grey levels: shot (electrons), read noise and the additive noise.
-        var = electrons * f32(to_dn ** 2)
-        var += f32((s.read_noise_e * to_dn) ** 2 + s.noise_sigma ** 2)
-        dn = electrons * f32(to_dn)
-        dn += cv2.sqrt(var) * noise
-        # Saturation at the full well, after the noise (a saturated pixel reads the full well).
+        return irradiance * f32(s.gain), (f32(s.noise_sigma) if s.noise_sigma > 0 else None)
+    e_per_dn = _electrons_per_dn(s, white_level)
+    to_dn = s.gain / e_per_dn
+    electrons = np.maximum(irradiance * f32(e_per_dn), f32(0))
+    # Variance in grey levels: shot (electrons), read noise and the additive noise.
+    var = electrons * f32(to_dn ** 2)
+    var += f32((s.read_noise_e * to_dn) ** 2 + s.noise_sigma ** 2)
+    return electrons * f32(to_dn), cv2.sqrt(var)
+
+
+def _electrons_per_dn(sensor: Sensor, white_level: float) -> float:
+    """Electrons per grey level of the noise-free image: the white print collects
+    exposure * full_well electrons."""
+    return sensor.exposure * sensor.full_well_e / white_level
+
+
+def record(dn: np.ndarray, sensor: Sensor, white_level: float) -> np.ndarray:
+    """The 8-bit image of ``dn`` float32, :func:`sensor_response`'s mean plus its sd times the
+    noise: saturation at the full well (after the noise: a saturated pixel reads the full
+    well), the ADC, rounding to 8 bits and the optional JPEG round trip. ``dn`` is
+    overwritten."""
+    s = sensor
+    f32 = np.float32
+    if s.full_well_e is not None:
+        to_dn = s.gain / _electrons_per_dn(s, white_level)
         np.minimum(dn, f32(s.full_well_e * to_dn), out=dn)
     if s.adc_bits < 8:
         step = 256.0 / (1 << s.adc_bits)

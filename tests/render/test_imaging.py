@@ -184,8 +184,9 @@ def test_linear_motion_is_a_box_filter(rays):
     box = (taps / taps.sum()).astype(np.float32)[None, :]
     expected = cv2.filter2D(sharp.astype(np.float32), -1, box, borderType=cv2.BORDER_REPLICATE)
     diff = np.abs(img.astype(np.float32) - expected)
-    print(f"motion of {s:.1f} px in {len(moving._exposure_poses(R, t, (np.zeros(3), np.array([speed, 0, 0]))))}"
-          f" sub-frames: max {diff.max():.2f}, mean {diff.mean():.3f} grey levels")
+    subframes = len(moving._exposure_poses(R, t, (np.zeros(3), np.array([speed, 0, 0]))))
+    print(f"motion of {s:.1f} px in {subframes} sub-frames: max {diff.max():.2f}, "
+          f"mean {diff.mean():.3f} grey levels")
     assert diff.mean() < 0.5 and diff.max() < 8
 
 
@@ -228,6 +229,27 @@ def test_sensor_saturates_adc_quantizes_and_jpeg_is_a_round_trip():
     jpeg = expose(ramp, Sensor(jpeg_quality=40), 235.0, None)
     ok, buf = cv2.imencode(".jpg", lossless, [cv2.IMWRITE_JPEG_QUALITY, 40])
     assert np.array_equal(jpeg, cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE))
+
+
+@pytest.mark.parametrize("sensor", [
+    Sensor(full_well_e=6000.0, exposure=0.3, read_noise_e=3.0, gain=1.4, jpeg_quality=85),
+    Sensor(noise_sigma=3.0, adc_bits=6)])
+def test_the_sensor_on_the_boards_box_is_the_sensor_on_the_whole_frame(rays, sensor):
+    """The renderer exposes only the board's box per frame and takes the (vignetted)
+    background's response from a map it built once: byte for byte the whole-frame sensor on
+    the same noise draw."""
+    settings = RenderSettings(optics=Optics(corner_illumination=0.6), sensor=sensor)
+    renderer = AnalyticRenderer(WIDE, BOARD, settings, rays(WIDE))
+    R, t = tilted(depth=500.0)
+    img = renderer.render(R, t, np.random.default_rng(5))
+    canvas = np.full((WIDE.height, WIDE.width), round(110.0 * 256), np.uint16)
+    strips = renderer._draw_board(canvas, R, t, renderer.rays.toward(OBJ @ R.T + t))
+    assert 0 < sum((r1 - r0) * (c1 - c0) for r0, r1, c0, c1, _ in strips) < canvas.size / 2
+    irradiance = canvas.astype(np.float32) * np.float32(1 / 256)
+    irradiance *= vignetting_map(rays(WIDE).xy[1:-1, 1:-1], 0.6)
+    from stereo_bench.render import gaussian_noise
+    noise = gaussian_noise(np.random.default_rng(5), canvas.shape)
+    assert np.array_equal(img, expose(irradiance, sensor, 235.0, noise))
 
 
 def test_photograph_records_each_colour_channel_as_a_sensor_of_its_own():
