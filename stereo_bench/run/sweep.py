@@ -81,7 +81,6 @@ def _run_config(args) -> dict:
                 "traceback": traceback.format_exc(), "wall_time_s": time.perf_counter() - t0}
 
 
-@contextmanager
 def _pixels(cfg: RigConfig) -> int:
     """Pixels a configuration renders and searches: the scheduler starts the largest first
     (a Dask priority), so that the sweep does not end on one large configuration running alone
@@ -89,6 +88,7 @@ def _pixels(cfg: RigConfig) -> int:
     return cfg.trajectory.frames * sum(c.width * c.height for c in cfg.cameras)
 
 
+@contextmanager
 def _dask_client(workers: int, scheduler: str | None):
     """A ``distributed.Client`` on the running scheduler at ``scheduler`` ("tcp://HOST:PORT"),
     or on an embedded ``LocalCluster`` of ``workers`` processes closed on exit; yields the
