@@ -59,13 +59,14 @@ class CameraDetections:
 class DatasetDetections:
     """Detections of a dataset's images, taken one image at a time: from its files
     (``detect_dataset``) or from the renderer as each image is made (``write_dataset``'s
-    ``on_image``: the same 8-bit pixels the lossless PNG holds, without reading it back)."""
+    ``detections``: the same 8-bit pixels the lossless PNG holds, without reading it back).
+    ``seconds``: the time spent detecting (summed over processes when merged)."""
 
     def __init__(self, pattern, method: str | None = None):
         self.pattern = pattern
         self.method = resolve_method(pattern, method)
         self._frames: dict[tuple[int, int], Detection] = {}
-        self.seconds = 0.0  # spent detecting
+        self.seconds = 0.0
 
     def add(self, camera: int, frame: int, image) -> None:
         """Detect in ``image`` (8-bit), or record ``image``'s loading error (an OSError or
@@ -79,6 +80,13 @@ class DatasetDetections:
             det = failed_detection(self.pattern, str(e))
         self._frames[camera, frame] = det
         self.seconds += time.perf_counter() - start
+
+    def merge(self, other: "DatasetDetections") -> None:
+        """Take ``other``'s images (those it was given in another process) and its time."""
+        if other.method != self.method:
+            raise ValueError(f"detections by {other.method!r} merged into {self.method!r}")
+        self._frames.update(other._frames)
+        self.seconds += other.seconds
 
     def result(self, cameras: list[str], frames: int) -> list[CameraDetections]:
         """One ``CameraDetections`` per camera; ValueError if an image was not given."""

@@ -268,11 +268,11 @@ def rig_fingerprint(metrics_fp: str, method: str, settings: dict | None = None) 
 
 
 def dataset_of(cfg: RigConfig, trial: TrialPaths, dataset_dir: Path | None, progress,
-               notes: Notes) -> tuple[Dataset, DatasetDetections | None]:
+               notes: Notes, workers: int = 1) -> tuple[Dataset, DatasetDetections | None]:
     """The trial's dataset: an existing one (``dataset_dir``), or the trial's own, reused when
-    it was rendered from this configuration and rendered again otherwise; with the detections
-    of its images when it was rendered here (each image detected as it was made, not read back
-    from its file), else None."""
+    it was rendered from this configuration and rendered again otherwise (its cameras
+    ``workers`` at a time); with the detections of its images when it was rendered here (each
+    image detected as it was made, not read back from its file), else None."""
     if dataset_dir is not None:
         return Dataset.load(dataset_dir), None
     paths = trial.dataset
@@ -287,20 +287,21 @@ def dataset_of(cfg: RigConfig, trial: TrialPaths, dataset_dir: Path | None, prog
     except UnreadableFileError as e:
         notes.stage_redone(f"{e}; rendering again")
     found = DatasetDetections(cfg.pattern.build())
-    return write_dataset(cfg, paths.root, progress, on_image=found.add), found
+    return write_dataset(cfg, paths.root, progress, found, workers), found
 
 
 def run_trial(cfg: RigConfig, out: Path, methods: list[str], progress=None,
-              dataset_dir: Path | None = None, with_rig: bool = True) -> dict:
+              dataset_dir: Path | None = None, with_rig: bool = True, workers: int = 1) -> dict:
     """One trial (one seed): every stage, each reused when its marker matches (module docstring).
 
     ``dataset_dir``: an existing dataset to use instead of rendering into the trial directory.
+    ``workers``: processes that render and detect the cameras (``write_dataset``).
     The returned report (the trial's metrics.json plus ``rig``, ``timing`` and ``notes``) says in
     ``notes`` which stages were redone and why, and carries the dataset's warnings.
     """
     trial = RunPaths(Path(out)).trial(cfg.seed)
     notes = Notes()
-    ds, detected = dataset_of(cfg, trial, dataset_dir, progress, notes)
+    ds, detected = dataset_of(cfg, trial, dataset_dir, progress, notes, workers)
     expected = metrics_fingerprint(detections_fingerprint(ds), methods, cfg.calibration)
     report = reusable(trial.metrics, expected, notes, "calibration")
     if report is None:
@@ -336,21 +337,24 @@ def run_trial(cfg: RigConfig, out: Path, methods: list[str], progress=None,
 
 
 def _run_trial_job(args):
-    cfg_json, out, methods, dataset_dir, with_rig = args
+    cfg_json, out, methods, dataset_dir, with_rig, workers = args
     return run_trial(RigConfig.model_validate(cfg_json), Path(out), methods,
-                     dataset_dir=dataset_dir, with_rig=with_rig)
+                     dataset_dir=dataset_dir, with_rig=with_rig, workers=workers)
 
 
 def run(cfg: RigConfig, out: Path, methods: list[str], trials: int = 1, workers: int = 1,
         progress=None, first_dataset: Path | None = None, with_rig: bool = True) -> list[dict]:
     """All trials (seeds cfg.seed, cfg.seed + 1, ...); with workers > 1 in spawned processes
-    that end with this one (``workers.process_pool``). Holds the run
-    directory's lock throughout (RunLockedError if another run holds it).
+    that end with this one (``workers.process_pool``), or for one trial, its cameras rendered
+    and detected ``workers`` at a time. Holds the run directory's lock throughout
+    (RunLockedError if another run holds it).
 
     ``first_dataset``: an existing dataset of ``cfg`` used as the first trial.
     """
+    per_trial = workers if trials == 1 else 1
     jobs = [(cfg.model_copy(update={"seed": cfg.seed + i}).model_dump(mode="json"), str(out),
-             methods, first_dataset if i == 0 else None, with_rig) for i in range(trials)]
+             methods, first_dataset if i == 0 else None, with_rig, per_trial)
+            for i in range(trials)]
     with locked(out):
         return in_processes(_run_trial_job, jobs, workers, progress)
 

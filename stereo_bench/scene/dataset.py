@@ -124,17 +124,57 @@ class UnusableRigError(ConfigError):
     """A valid rig file whose cameras would never see the board well enough to detect it."""
 
 
-def write_dataset(cfg: RigConfig, out: Path, progress=None, on_image=None) -> "Dataset":
+def _render_camera(cfg: RigConfig, rig: Rig, c: int, paths: DatasetPaths, make_renderer,
+                   detections, tick) -> float:
+    """Render (and write) camera ``c``'s frames, giving each image to ``detections`` if any;
+    returns the seconds spent rendering and writing. ``tick()`` after each image."""
+    cam = rig.cameras[c]
+    settings = render_settings(cfg, rig, cam)
+    R, t = rig.cam_from_board(cam)
+    start = time.perf_counter()
+    renderer = make_renderer(cam, rig.pattern, settings, R, t)
+    omega, v = rig.board_velocity(cam, settings.motion.speed_mm_s,
+                                  cfg.environment.motion.speed == "trajectory")
+    elsewhere = 0.0  # in detections
+    for f in range(len(rig.trajectory)):
+        image = renderer.render(R[f], t[f], frame_rng(cfg.seed, c, f), (omega[f], v[f]))
+        write_png(paths.image(cam.name, f), image)
+        if detections is not None:
+            before = time.perf_counter()
+            detections.add(c, f, image)
+            elsewhere += time.perf_counter() - before
+        if tick:
+            tick()
+    return time.perf_counter() - start - elsewhere
+
+
+def _camera_job(args) -> tuple[float, object]:
+    """One camera of ``write_dataset`` in a worker process: (render seconds, the detections
+    given, now holding that camera's frames)."""
+    cfg_json, out, c, detections = args
+    cfg = RigConfig.model_validate(cfg_json)
+    paths = DatasetPaths(Path(out))
+    with _renderers(cfg, paths) as make_renderer:
+        seconds = _render_camera(cfg, Rig.from_config(cfg), c, paths, make_renderer,
+                                 detections, None)
+    return seconds, detections
+
+
+def write_dataset(cfg: RigConfig, out: Path, progress=None, detections=None,
+                  workers: int = 1) -> "Dataset":
     """Render every camera and frame of ``cfg`` into ``out`` and write the ground truth.
 
-    ``on_image(camera index, frame, image)`` is called with each image once it is written (a
+    ``detections``: a ``detect.dataset.DatasetDetections`` given each image as it is made (a
     stage that needs the pixels takes them here rather than reading the files back); its time
-    is not counted in the dataset's render time.
+    is its own, not the dataset's render time. ``workers`` > 1: the cameras are rendered (and
+    detected) that many at a time in spawned processes; the Blender backend renders in its one
+    worker, camera after camera. The images are the same either way (each frame's noise has
+    its own generator, ``frame_rng``).
 
     The ground truth is computed first: a rig in which no camera would see the board larger
     than ``MIN_BOARD_SPAN_PX`` is refused (UnusableRigError) before anything is rendered; a camera
     that alone cannot see it is kept and named in the manifest's warnings.
-    ``progress(done, total)`` is called after each image.
+    ``progress(done, total)`` is called after each image (after each camera with ``workers``).
     """
     paths = DatasetPaths(Path(out))
     shifted = [c.name for c in cfg.cameras if c.time_offset_ms != 0]
@@ -157,27 +197,25 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None, on_image=None) -> "D
             f"rig {cfg.name!r}: no camera would see the board: " + "; ".join(warnings)
             + " (fields: cameras.*.fx/fy/position_mm/look_at_mm, trajectory.depth_mm)")
     paths.manifest.unlink(missing_ok=True)
-    total = len(rig.cameras) * len(rig.trajectory)
-    done = 0
-    t0 = time.perf_counter()
-    elsewhere = 0.0  # in on_image
-    with _renderers(cfg, paths) as make_renderer:
-        for c, cam in enumerate(rig.cameras):
-            settings = render_settings(cfg, rig, cam)
-            R, t = rig.cam_from_board(cam)
-            renderer = make_renderer(cam, rig.pattern, settings, R, t)
-            omega, v = rig.board_velocity(cam, settings.motion.speed_mm_s,
-                                          cfg.environment.motion.speed == "trajectory")
-            for f in range(len(rig.trajectory)):
-                image = renderer.render(R[f], t[f], frame_rng(cfg.seed, c, f), (omega[f], v[f]))
-                write_png(paths.image(cam.name, f), image)
-                if on_image is not None:
-                    hook_start = time.perf_counter()
-                    on_image(c, f, image)
-                    elsewhere += time.perf_counter() - hook_start
-                done += 1
-                if progress:
-                    progress(done, total)
+    frames = len(rig.trajectory)
+    total = len(rig.cameras) * frames
+    if workers > 1 and len(rig.cameras) > 1 and cfg.renderer.kind == "analytic":
+        from ..run.workers import in_processes  # the one way this package starts processes
+
+        jobs = [(cfg.model_dump(mode="json"), str(out), c, detections)
+                for c in range(len(rig.cameras))]
+        done = in_processes(_camera_job, jobs, workers,
+                            progress and (lambda n, _: progress(n * frames, total)))
+        render_s = sum(seconds for seconds, _ in done)
+        if detections is not None:
+            for _, found in done:
+                detections.merge(found)
+    else:
+        ticks = iter(range(1, total + 1))
+        with _renderers(cfg, paths) as make_renderer:
+            render_s = sum(_render_camera(cfg, rig, c, paths, make_renderer, detections,
+                                          progress and (lambda: progress(next(ticks), total)))
+                           for c in range(len(rig.cameras)))
 
     cams = rig.cameras
     arrays = {
@@ -203,7 +241,7 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None, on_image=None) -> "D
     write_text(paths.config, yaml.safe_dump(resolved, sort_keys=False))
     write_json(paths.cameras, [c.to_dict() for c in cams])
     # Timing lives outside the manifest so that the same config and seed give identical files.
-    write_json(paths.timing, {"render_s": time.perf_counter() - t0 - elsewhere})
+    write_json(paths.timing, {"render_s": render_s})
     write_json(paths.manifest, with_outputs({
         "schema_version": SCHEMA_VERSION,
         "fingerprint": dataset_fingerprint(cfg),

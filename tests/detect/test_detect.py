@@ -223,14 +223,16 @@ def test_dataset_detection_records_failures_and_round_trips(tmp_path):
 
 
 def test_detections_taken_as_rendered_equal_those_read_back(tmp_path):
-    """The run's render-to-detect path (each image detected as it is made) gives the same
-    detections as reading the dataset's PNG files back, and says which image it lacks."""
+    """The run's render-to-detect path (each image detected as it is made, in this process or
+    in one per camera) gives the same detections as reading the dataset's PNG files back, and
+    says which image it lacks."""
     data = yaml.safe_load((CONFIGS / "wide_pair.yaml").read_text())
     data["trajectory"]["frames"] = 4
     data["pattern"] = {"kind": "charuco"}
+    data["environment"] = {"kind": "noisy"}  # each frame's noise from its own generator
     cfg = parse_rig(data)
     taken = DatasetDetections(cfg.pattern.build())
-    dataset = write_dataset(cfg, tmp_path / "ds", on_image=taken.add)
+    dataset = write_dataset(cfg, tmp_path / "ds", detections=taken)
     names = [c.name for c in dataset.cameras]
     for fresh, read in zip(taken.result(names, dataset.frames), detect_dataset(dataset)):
         assert fresh.found.any() and fresh.method == read.method
@@ -238,6 +240,16 @@ def test_detections_taken_as_rendered_equal_those_read_back(tmp_path):
         assert np.array_equal(fresh.found, read.found) and fresh.errors == read.errors
     with pytest.raises(ValueError, match="frame 4"):
         taken.result(names, dataset.frames + 1)
+    # The cameras rendered and detected in two processes: the same files, the same detections.
+    apart = DatasetDetections(cfg.pattern.build())
+    again = write_dataset(cfg, tmp_path / "apart", detections=apart, workers=2)
+    for c in names:
+        for f in range(dataset.frames):
+            assert (again.paths.image(c, f).read_bytes() == dataset.paths.image(c, f).read_bytes())
+    assert apart.seconds > 0
+    for one, two in zip(taken.result(names, 4), apart.result(names, 4)):
+        assert np.array_equal(one.points, two.points, equal_nan=True)
+        assert one.errors == two.errors
 
 
 def test_detection_errors_counts_flips_and_keeps_them_out_of_the_statistics():
