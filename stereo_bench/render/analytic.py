@@ -27,10 +27,14 @@ on a 4096 x 3072 camera).
 
 Around this ideal image sits the imaging model (imaging.py; docs/imaging.md): the lamp's
 shading and highlight are painted into the frame's texture level; motion blur renders the board
-at sub-frame poses over the exposure and averages them; a board that is not its pattern
-(board_shape.py) is met exactly by each ray; defocus, lens blur, vignetting and the sensor then
-turn the irradiance into the 8-bit image. Without them (``clean``) the image is computed in
-integers exactly as before they existed.
+at sub-frame poses over the exposure and averages them, sampling time and pixel area together:
+each sub-frame reads s points of every pixel (one in each row and column of the s x s grid, a
+different diagonal in consecutive sub-frames), so k sub-frames cost k s samples per pixel, not
+k s^2; a board that is not its pattern (board_shape.py) is met exactly by each ray; defocus,
+lens blur, vignetting and the sensor then turn the irradiance into the 8-bit image, on the
+board's box only (the rest is the constant background, whose response through the vignetting
+is computed once per renderer; the noise alone covers every pixel). Without them (``clean``)
+the image is computed in integers exactly as before they existed.
 
 Conventions: millimetres, OpenCV pixel centres (top-left pixel centre = (0, 0)),
 ``p_cam = R @ p_board + t`` for ``cam_from_board = (R, t)``.
@@ -50,8 +54,8 @@ from ..core.camera import Camera, project_cam_with_jacobians
 from ..core.poses import rodrigues_to_matrix, view_toward
 from .imaging import (MAX_MOTION_SUBFRAMES, Light, Motion, Optics, Sensor, blinn_phong, defocus,
                       record, sensor_response, vignetting_map)
-from .texels import (OUTSIDE, cells_touching, gaussian_noise, inverse_2x2, linear_weights,
-                     plane_texels, sample_texels)
+from .texels import (OUTSIDE, cells_touching, gaussian_noise, inverse_2x2, linear_interpolation,
+                     offset_texels, plane_texels, sample_texels, time_area_offsets)
 
 _PAD = 2           # background texels around every texture (also absorbs perspectiveTransform's
                    # (0, 0) answer for rays parallel to the plane)
@@ -252,6 +256,20 @@ class _Level:
     texel_offset: np.ndarray
 
 
+@dataclass(frozen=True)
+class _Seen:
+    """The board at one pose as a view sees it: ``B`` board_from_normalized (3, 3), ``R``, ``t``
+    its pose in the view, ``strips`` and ``footprint`` as :meth:`AnalyticRenderer._locate`
+    gives them, ``front`` whether its printed front faces the camera."""
+
+    B: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    strips: list
+    footprint: float
+    front: bool
+
+
 class AnalyticRenderer:
     """Renders one camera's view of one board (see the module docstring for the method).
 
@@ -303,20 +321,8 @@ class AnalyticRenderer:
         if len(poses) == 1:
             strips = self._draw_board(canvas, R, t, view)
             return self._finish(self._surround(canvas), strips, rng, *view.pose(R, t), view)
-        # The mean of the sub-frames, accumulated only where they draw (each one's strips are
-        # disjoint bands of rows): background + mean of (sub-frame - background).
-        background = np.float32(round(st.background * 256))
-        total = np.zeros((H, W), dtype=np.float32)
-        strips = []
-        for Rk, tk in poses:
-            drawn = self._draw_board(canvas, Rk, tk, view)
-            for r0, r1, c0, c1, _ in drawn:
-                total[r0:r1, c0:c1] += canvas[r0:r1, c0:c1] - background
-                canvas[r0:r1, c0:c1] = background
-            strips += drawn
-        total *= np.float32(1 / len(poses))
-        total += background
-        return self._finish(self._surround(total), strips, rng, *view.pose(R, t), view)
+        canvas, strips = self._draw_exposure(poses, view, R, t)
+        return self._finish(self._surround(canvas), strips, rng, *view.pose(R, t), view)
 
     def _surround(self, image: np.ndarray) -> np.ndarray:
         """The image with the pixels that have no ray (a circular fisheye's surround) black."""
@@ -325,9 +331,11 @@ class AnalyticRenderer:
         return image
 
     def _exposure_poses(self, R, t, velocity) -> list[tuple[np.ndarray, np.ndarray]]:
-        """The sub-frame poses of the exposure: [(R, t)] without motion, else enough evenly
-        spaced times (midpoint rule over the exposure) that the board's outline moves at most
-        ``_SUBFRAME_STEP_PX`` between them, capped at ``MAX_MOTION_SUBFRAMES``."""
+        """The sub-frame poses of the exposure: [(R, t)] without motion, else k poses at evenly
+        spaced times (midpoint rule over the exposure), enough that the board's outline moves
+        at most ``_SUBFRAME_STEP_PX`` between them, at least s^2 (each sub-frame samples one
+        point of every pixel's area, :meth:`_draw_exposure`) and at most
+        ``MAX_MOTION_SUBFRAMES``."""
         motion = self.settings.motion
         if velocity is None or not motion.active:
             return [(R, t)]
@@ -348,38 +356,93 @@ class AnalyticRenderer:
         else:
             uv = [self.camera.normalized_to_pixels(e[:, :2] / e[:, 2:]) for e in ends]
             steps = int(math.ceil(np.linalg.norm(uv[1] - uv[0], axis=1).max() / _SUBFRAME_STEP_PX))
-        k = int(np.clip(steps, 1, MAX_MOTION_SUBFRAMES))
+        area = self.settings.supersampling ** 2
+        k = int(np.clip(steps, area, max(MAX_MOTION_SUBFRAMES, area)))
         return [pose(T * ((i + 0.5) / k - 0.5)) for i in range(k)]
 
     # --- geometry -----------------------------------------------------------------------------
+    def _seen(self, R: np.ndarray, t: np.ndarray, view: RayView) -> "_Seen | None":
+        """The board at cam_from_board (R, t) as ``view`` sees it, None when it is not seen."""
+        R, t = view.pose(R, t)
+        corners = self.pattern.outline_mm() @ R[:, :2].T + t
+        normal_dot = R[:, 2] @ t  # > 0: the printed front faces the camera
+        if corners[:, 2].max() <= 0 or abs(normal_dot) <= 1e-9 * np.linalg.norm(t):
+            return None  # behind the camera, or seen exactly edge-on
+        # board_from_normalized, scaled so the homogeneous w is z_ref / depth (order 1; see _PAD).
+        B = np.linalg.inv(np.column_stack([R[:, 0], R[:, 1], t])) * corners[:, 2].max()
+        strips, footprint = self._locate(B, R, t, view)
+        return _Seen(B, R, t, strips, footprint, normal_dot > 0) if strips else None
+
     def _draw_board(self, canvas: np.ndarray, R: np.ndarray, t: np.ndarray,
                     view: RayView) -> list:
         """Render the board at cam_from_board (R, t) into ``canvas`` (H, W) uint16 through
         ``view`` (the geometry in its frame, the light in the camera's); returns the strips
         drawn."""
-        lit = R, t
-        R, t = view.pose(R, t)
-        corners = self.pattern.outline_mm() @ R[:, :2].T + t
-        normal_dot = R[:, 2] @ t  # > 0: the printed front faces the camera
-        if corners[:, 2].max() <= 0 or abs(normal_dot) <= 1e-9 * np.linalg.norm(t):
-            return []  # behind the camera, or seen exactly edge-on
-        # board_from_normalized, scaled so the homogeneous w is z_ref / depth (order 1; see _PAD).
-        B = np.linalg.inv(np.column_stack([R[:, 0], R[:, 1], t])) * corners[:, 2].max()
-        strips, footprint = self._locate(B, R, t, view)
-        if not strips:
+        seen = self._seen(R, t, view)
+        if seen is None:
             return []
         s = self.settings.supersampling
-        level = self._level(footprint / s, front=normal_dot > 0, R=lit[0], t=lit[1])
-        to_texels = self._texel_map(level, B, R, t)
+        level = self._level(seen.footprint / s, front=seen.front, R=R, t=t)
+        to_texels = self._texel_map(level, seen.B, seen.R, seen.t)
         border = round(self.settings.background * 256)
-        for r0, r1, c0, c1, exact in strips:
+        for r0, r1, c0, c1, exact in seen.strips:
             xy = view.xy[r0:r1 + 2, c0:c1 + 2]  # pixels r0-1..r1, c0-1..c1
             texels = sample_texels(xy, to_texels, s, exact)
             samples = cv2.remap(level.image, texels, None, cv2.INTER_LINEAR,
                                 borderMode=cv2.BORDER_CONSTANT, borderValue=border)
             canvas[r0:r1, c0:c1] = cv2.resize(samples, (c1 - c0, r1 - r0),
                                               interpolation=cv2.INTER_AREA)
-        return strips
+        return seen.strips
+
+    def _draw_exposure(self, poses: list, view: RayView, R: np.ndarray, t: np.ndarray
+                       ) -> tuple[np.ndarray, list]:
+        """The mean of the board over the exposure's sub-frame ``poses`` (time order), (H, W)
+        float32 in 1/256 grey levels, and every strip drawn; (R, t) the pose at mid-exposure.
+
+        Time and pixel area are sampled together: sub-frame i samples every pixel at the s
+        area offsets :func:`time_area_offsets` gives it (one in each row and column of the
+        static render's s x s grid), so k sub-frames cost k s samples per pixel and their mean
+        integrates the pixel's area over the exposure (the box filter of the static render,
+        swept along the motion). The texture level is the static render's
+        (texels no larger than the footprint of one of its s x s samples, for the farthest
+        sub-frame), lit at mid-exposure: over one exposure the shading changes to first order
+        in time, which the mean over a symmetric exposure cancels. Sums are integers (exact).
+        """
+        st = self.settings
+        H, W = self.camera.height, self.camera.width
+        background = round(st.background * 256)
+        canvas = np.full((H, W), np.float32(background), dtype=np.float32)
+        seen = [self._seen(Rk, tk, view) for Rk, tk in poses]
+        drawn = [x for x in seen if x is not None]
+        if not drawn:
+            return canvas, []
+        s = st.supersampling
+        levels = {front: self._level(max(x.footprint for x in drawn if x.front == front) / s,
+                                     front=front, R=R, t=t)
+                  for front in {x.front for x in drawn}}
+        strips = [strip for x in drawn for strip in x.strips]
+        rows, cols = self._board_box(strips, 0)
+        total = np.zeros((rows.stop - rows.start, cols.stop - cols.start), dtype=np.int32)
+        count = np.zeros(total.shape, dtype=np.uint8)  # sub-frames that drew each pixel
+        for x, offsets in zip(seen, time_area_offsets(len(poses), s)):
+            if x is None:
+                continue
+            level = levels[x.front]
+            to_texels = self._texel_map(level, x.B, x.R, x.t)
+            for r0, r1, c0, c1, exact in x.strips:
+                tile = slice(r0 - rows.start, r1 - rows.start), \
+                    slice(c0 - cols.start, c1 - cols.start)
+                for texels in offset_texels(view.xy[r0:r1 + 2, c0:c1 + 2], to_texels, offsets,
+                                            exact):
+                    total[tile] += cv2.remap(level.image, texels, None, cv2.INTER_LINEAR,
+                                             borderMode=cv2.BORDER_CONSTANT,
+                                             borderValue=background)
+                count[tile] += 1
+        # Where a sub-frame drew nothing its samples are the background.
+        samples = len(poses) * s
+        total += (len(poses) - count.astype(np.int32)) * (s * background)
+        canvas[rows, cols] = total.astype(np.float32) * np.float32(1 / samples)
+        return canvas, strips
 
     def _texel_map(self, level: "_Level", B: np.ndarray, R: np.ndarray, t: np.ndarray):
         """A function from normalized coordinates (h, w, 2) float32 to the level's texel
@@ -414,11 +477,10 @@ class AnalyticRenderer:
             cols = np.linspace(0, w - 1, -(-(w - 1) // _SHAPE_CELL) + 1).round().astype(int)
             coarse = np.ascontiguousarray(xy[np.ix_(rows, cols)])
             shift = exact(coarse) - plane(coarse, False)
-            # Separable linear interpolation as two small matrix products (cv2.remap would
-            # round its positions to 1/32 of a cell).
-            Wr, Wc = linear_weights(h, rows), linear_weights(w, cols)
-            shift = np.einsum("in,nmc,jm->ijc", Wr, shift, Wc, optimize=True)
-            return plane(xy, False) + shift.astype(np.float32)
+            # Separable linear interpolation in float (cv2.remap would round its positions to
+            # 1/32 of a cell).
+            shift = linear_interpolation(shift.astype(np.float32), rows, h, 0)
+            return plane(xy, False) + linear_interpolation(shift, cols, w, 1)
         return surface
 
     def _locate(self, B: np.ndarray, R: np.ndarray, t: np.ndarray, view: RayView):

@@ -9,7 +9,8 @@ in the units of a camera's data sheet and off by default:
   light to black and white squares and so washes out the contrast where it falls.
 * **Motion**: the board moves during the exposure; the image is the mean of sub-frames at
   evenly spaced times of the exposure, as many as keep consecutive sub-frames within half a
-  pixel (the ground truth is the pose at mid-exposure).
+  pixel, each sampling a balanced part of every pixel's area (time and area are integrated
+  together; the ground truth is the pose at mid-exposure).
 * **Optics**: thin-lens defocus, a uniform disc (the geometric circle of confusion) whose diameter
   follows from the f-number, focal length and focus distance for every pixel's depth on the board
   (``circle_of_confusion_px``); an optional Gaussian lens blur; natural vignetting, the cos^4 law

@@ -1,5 +1,6 @@
 """The analytic renderer's sampling: board texels looked up through a plane's homography,
-interpolation weights, the board's cells in the image, and the renderer's Gaussian noise.
+the joint time and pixel-area samples of an exposure, interpolation weights, the board's cells
+in the image, and the renderer's Gaussian noise.
 """
 
 from __future__ import annotations
@@ -45,16 +46,17 @@ def inverse_2x2(J: np.ndarray) -> np.ndarray:
     return inv.reshape(-1, 2, 2)
 
 
-def linear_weights(n: int, nodes: np.ndarray) -> np.ndarray:
-    """(n, len(nodes)) float32 weights of linear interpolation at 0..n-1 from values at the
-    increasing integer positions ``nodes`` (first 0, last n - 1)."""
+def linear_interpolation(values: np.ndarray, nodes: np.ndarray, n: int, axis: int
+                         ) -> np.ndarray:
+    """``values`` given at the increasing integer positions ``nodes`` (first 0, last n - 1)
+    along ``axis``, linearly interpolated at 0..n-1 (each output from its two nodes)."""
     i = np.arange(n)
     k = np.clip(np.searchsorted(nodes, i, side="right") - 1, 0, len(nodes) - 2)
-    frac = (i - nodes[k]) / (nodes[k + 1] - nodes[k])
-    W = np.zeros((n, len(nodes)), dtype=np.float32)
-    W[i, k] = 1 - frac
-    W[i, k + 1] = frac
-    return W
+    shape = [1] * values.ndim
+    shape[axis] = n
+    frac = ((i - nodes[k]) / (nodes[k + 1] - nodes[k])).astype(values.dtype).reshape(shape)
+    left = np.take(values, k, axis=axis)
+    return left + (np.take(values, k + 1, axis=axis) - left) * frac
 
 
 def plane_texels(M: np.ndarray):
@@ -85,3 +87,46 @@ def sample_texels(xy: np.ndarray, to_texels, s: int, exact: bool) -> np.ndarray:
         return up[s:-s, s:-s]
     up = cv2.resize(xy, size, interpolation=cv2.INTER_LINEAR)[s:-s, s:-s]
     return to_texels(up, True)
+
+
+def offset_texels(xy: np.ndarray, to_texels, offsets: np.ndarray, exact: bool) -> list:
+    """Texel coordinates [(h, w, 2) float32] of one sample per pixel of h x w pixels for each
+    of ``offsets`` (n, 2): (du, dv) px from the pixel's centre, |du|, |dv| < 1.
+
+    Arguments as in :func:`sample_texels`, of which these are samples of a finer grid: the
+    same bilinear interpolation of the pixel-centre texel map (or of the rays, ``exact``).
+    """
+    if not exact:
+        texels = to_texels(xy, False)
+        return [_shifted(texels, offset) for offset in offsets]
+    return [to_texels(_shifted(xy, offset), True) for offset in offsets]
+
+
+def _shifted(grid: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """(h, w, C) bilinear interpolation of ``grid`` (h + 2, w + 2, C), a one-pixel margin
+    around h x w pixels, at each pixel's centre plus ``offset`` (du, dv), |du|, |dv| < 1."""
+    du, dv = float(offset[0]), float(offset[1])
+    near = grid[1:-1]
+    far = grid[2:] if dv >= 0 else grid[:-2]
+    rows = cv2.addWeighted(near, 1.0 - abs(dv), far, abs(dv), 0.0)
+    near = rows[:, 1:-1]
+    far = rows[:, 2:] if du >= 0 else rows[:, :-2]
+    return cv2.addWeighted(near, 1.0 - abs(du), far, abs(du), 0.0)
+
+
+def time_area_offsets(k: int, s: int) -> np.ndarray:
+    """(k, s, 2) pixel-area offsets (du, dv) px of an exposure's k sub-frames, s per sub-frame:
+    sub-frame i samples the cells (a, (a + i) mod s), a = 0..s-1, of the s x s grid of
+    :func:`sample_texels` (offsets (a + 0.5) / s - 0.5).
+
+    Every sub-frame samples each column and each row of the grid once (an N-rooks set), so its
+    samples are balanced in u and in v (their mean is the pixel's centre: no shift, and an edge
+    parallel to either axis sees the pixel's full extent at every instant); s consecutive
+    sub-frames cover the whole grid, and consecutive sub-frames use different diagonals, so
+    time and pixel area are integrated together at s samples per pixel and sub-frame instead
+    of s^2.
+    """
+    grid = (np.arange(s) + 0.5) / s - 0.5
+    a = np.arange(s)
+    b = (a[None, :] + np.arange(k)[:, None]) % s
+    return np.stack([np.broadcast_to(grid[a], b.shape), grid[b]], -1)

@@ -19,6 +19,7 @@ from stereo_bench.render import AnalyticRenderer, RenderSettings
 from stereo_bench.render.imaging import (Light, Motion, Optics, Sensor, blinn_phong, disc_kernel,
                                          camera_vignette, expose, photograph, vignetting_gain,
                                          vignetting_map)
+from stereo_bench.render.texels import time_area_offsets
 
 
 def frontal(depth=400.0, shift=(0.0, 0.0)):
@@ -168,8 +169,9 @@ def test_lens_defocus_leaves_corners_unbiased(rays):
 
 
 # --- motion -----------------------------------------------------------------------------------
-def test_linear_motion_is_a_box_filter(rays):
-    """A fronto-parallel board sliding sideways at constant depth moves the image by
+@pytest.mark.parametrize("direction", [(1.0, 0.0), (0.0, 1.0)])
+def test_linear_motion_is_a_box_filter(rays, direction):
+    """A fronto-parallel board sliding sideways (or up) at constant depth moves the image by
     s = fx v T / z: its motion blur is the sharp image convolved with a box of length s."""
     depth, speed, exposure_ms = 400.0, 400.0, 20.0
     s = PINHOLE.fx * speed * exposure_ms / 1000 / depth  # 12 px
@@ -177,17 +179,36 @@ def test_linear_motion_is_a_box_filter(rays):
     sharp = AnalyticRenderer(PINHOLE, BOARD, RenderSettings(), rays(PINHOLE)).render(R, t)
     moving = AnalyticRenderer(PINHOLE, BOARD, RenderSettings(motion=Motion(exposure_ms, speed)),
                               rays(PINHOLE))
-    img = moving.render(R, t, velocity=(np.zeros(3), np.array([speed, 0.0, 0.0])))
+    velocity = (np.zeros(3), speed * np.array([*direction, 0.0]))
+    img = moving.render(R, t, velocity=velocity)
     # The continuous box of length s with fractional end taps.
     n = int(np.ceil(s / 2))
     taps = np.clip(s / 2 - np.abs(np.arange(-n, n + 1)) + 0.5, 0, 1)
     box = (taps / taps.sum()).astype(np.float32)[None, :]
+    if direction[1]:
+        box = box.T
     expected = cv2.filter2D(sharp.astype(np.float32), -1, box, borderType=cv2.BORDER_REPLICATE)
     diff = np.abs(img.astype(np.float32) - expected)
-    subframes = len(moving._exposure_poses(R, t, (np.zeros(3), np.array([speed, 0, 0]))))
+    subframes = len(moving._exposure_poses(R, t, velocity))
     print(f"motion of {s:.1f} px in {subframes} sub-frames: max {diff.max():.2f}, "
           f"mean {diff.mean():.3f} grey levels")
     assert diff.mean() < 0.5 and diff.max() < 8
+
+
+@pytest.mark.parametrize("s", [1, 2, 3, 4])
+def test_each_subframe_samples_every_row_and_column_of_the_pixel(s):
+    """The exposure's samples (time_area_offsets): s per sub-frame, one in each row and each
+    column of the s x s grid (so their mean is the pixel's centre at every instant), and s
+    consecutive sub-frames cover the grid's s^2 cells once."""
+    grid = (np.arange(s) + 0.5) / s - 0.5
+    offsets = time_area_offsets(3 * s + 1, s)
+    assert offsets.shape == (3 * s + 1, s, 2)
+    for sub in offsets:
+        assert sorted(sub[:, 0]) == pytest.approx(grid) and sorted(sub[:, 1]) == pytest.approx(grid)
+    for i in range(len(offsets) - s + 1):
+        cells = {(round((du + 0.5) * s - 0.5), round((dv + 0.5) * s - 0.5))
+                 for du, dv in offsets[i:i + s].reshape(-1, 2)}
+        assert len(cells) == s * s
 
 
 def test_motion_blur_keeps_the_truth_at_mid_exposure(rays):
