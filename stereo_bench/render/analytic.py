@@ -68,6 +68,7 @@ _MAX_DEPTH_SLOPE = 2e-3  # per px: interpolating texel coordinates is accurate t
 _LEVELS_PER_OCTAVE = 4
 _LEVELS_KEPT = 4   # texture levels cached per renderer (<= 4 x 32 MiB at the default cap)
 _SUBFRAME_STEP_PX = 0.5  # motion blur: the largest image motion between sub-frames
+_BAND_STRIPS = 8         # motion blur: strips drawn together per sub-frame (_bands)
 _SHAPE_CELL = 4          # px, grid of exact ray / warped-board intersections (see _texel_map)
 _MAX_DEFOCUS_PX = 50.0   # defocus radius cap: beyond it no detector finds the board anyway
 
@@ -270,6 +271,21 @@ class _Seen:
     front: bool
 
 
+def _bands(strips: list) -> list:
+    """The strips (as :meth:`AnalyticRenderer._locate` gives them) merged into bands of up to
+    ``_BAND_STRIPS`` consecutive smooth ones, each over their widest columns: fewer, larger
+    calls per sub-frame (the extra pixels see the background)."""
+    bands = []
+    for r0, r1, c0, c1, exact in strips:
+        if bands and not exact and not bands[-1][4] and bands[-1][1] == r0 and \
+                r1 - bands[-1][0] <= _BAND_STRIPS * _CELL:
+            b0, _, d0, d1, _ = bands[-1]
+            bands[-1] = (b0, r1, min(c0, d0), max(c1, d1), False)
+        else:
+            bands.append((r0, r1, c0, c1, exact))
+    return bands
+
+
 class AnalyticRenderer:
     """Renders one camera's view of one board (see the module docstring for the method).
 
@@ -429,7 +445,7 @@ class AnalyticRenderer:
                 continue
             level = levels[x.front]
             to_texels = self._texel_map(level, x.B, x.R, x.t)
-            for r0, r1, c0, c1, exact in x.strips:
+            for r0, r1, c0, c1, exact in _bands(x.strips):
                 tile = slice(r0 - rows.start, r1 - rows.start), \
                     slice(c0 - cols.start, c1 - cols.start)
                 for texels in offset_texels(view.xy[r0:r1 + 2, c0:c1 + 2], to_texels, offsets,
