@@ -349,8 +349,8 @@ class AnalyticRenderer:
     def _exposure_poses(self, R, t, velocity) -> list[tuple[np.ndarray, np.ndarray]]:
         """The sub-frame poses of the exposure: [(R, t)] without motion, else k poses at evenly
         spaced times (midpoint rule over the exposure), enough that the board's outline moves
-        at most ``_SUBFRAME_STEP_PX`` between them, at least s^2 (each sub-frame samples one
-        point of every pixel's area, :meth:`_draw_exposure`) and at most
+        at most ``_SUBFRAME_STEP_PX`` between them, at least s (each sub-frame samples s
+        points of every pixel's s x s grid, :meth:`_draw_exposure`) and at most
         ``MAX_MOTION_SUBFRAMES``."""
         motion = self.settings.motion
         if velocity is None or not motion.active:
@@ -372,8 +372,8 @@ class AnalyticRenderer:
         else:
             uv = [self.camera.normalized_to_pixels(e[:, :2] / e[:, 2:]) for e in ends]
             steps = int(math.ceil(np.linalg.norm(uv[1] - uv[0], axis=1).max() / _SUBFRAME_STEP_PX))
-        area = self.settings.supersampling ** 2
-        k = int(np.clip(steps, area, max(MAX_MOTION_SUBFRAMES, area)))
+        s = self.settings.supersampling
+        k = int(np.clip(steps, s, max(MAX_MOTION_SUBFRAMES, s)))
         return [pose(T * ((i + 0.5) / k - 0.5)) for i in range(k)]
 
     # --- geometry -----------------------------------------------------------------------------
