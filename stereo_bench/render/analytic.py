@@ -260,27 +260,31 @@ class _Level:
 @dataclass(frozen=True)
 class _Seen:
     """The board at one pose as a view sees it: ``B`` board_from_normalized (3, 3), ``R``, ``t``
-    its pose in the view, ``strips`` and ``footprint`` as :meth:`AnalyticRenderer._locate`
-    gives them, ``front`` whether its printed front faces the camera."""
+    its pose in the view, ``strips``, ``rough`` and ``footprint`` as
+    :meth:`AnalyticRenderer._locate` gives them, ``front`` whether its printed front faces the
+    camera."""
 
     B: np.ndarray
     R: np.ndarray
     t: np.ndarray
     strips: list
+    rough: np.ndarray
     footprint: float
     front: bool
 
 
-def _bands(strips: list) -> list:
-    """The strips (as :meth:`AnalyticRenderer._locate` gives them) merged into bands of up to
-    ``_BAND_STRIPS`` consecutive smooth ones, each over their widest columns: fewer, larger
-    calls per sub-frame (the extra pixels see the background)."""
+def _bands(seen: _Seen) -> list:
+    """The board's strips merged into bands of up to ``_BAND_STRIPS`` consecutive smooth ones,
+    each over their widest columns (the extra pixels see the background) and smooth only if
+    every cell it spans is: fewer, larger calls per sub-frame."""
     bands = []
-    for r0, r1, c0, c1, exact in strips:
+    for r0, r1, c0, c1, exact in seen.strips:
         if bands and not exact and not bands[-1][4] and bands[-1][1] == r0 and \
                 r1 - bands[-1][0] <= _BAND_STRIPS * _CELL:
             b0, _, d0, d1, _ = bands[-1]
-            bands[-1] = (b0, r1, min(c0, d0), max(c1, d1), False)
+            c0, c1 = min(c0, d0), max(c1, d1)
+            cells = seen.rough[b0 // _CELL:-(-r1 // _CELL), c0 // _CELL:-(-c1 // _CELL)]
+            bands[-1] = (b0, r1, c0, c1, bool(cells.any()))
         else:
             bands.append((r0, r1, c0, c1, exact))
     return bands
@@ -386,8 +390,8 @@ class AnalyticRenderer:
             return None  # behind the camera, or seen exactly edge-on
         # board_from_normalized, scaled so the homogeneous w is z_ref / depth (order 1; see _PAD).
         B = np.linalg.inv(np.column_stack([R[:, 0], R[:, 1], t])) * corners[:, 2].max()
-        strips, footprint = self._locate(B, R, t, view)
-        return _Seen(B, R, t, strips, footprint, normal_dot > 0) if strips else None
+        strips, footprint, rough = self._locate(B, R, t, view)
+        return _Seen(B, R, t, strips, rough, footprint, normal_dot > 0) if strips else None
 
     def _draw_board(self, canvas: np.ndarray, R: np.ndarray, t: np.ndarray,
                     view: RayView) -> list:
@@ -445,7 +449,7 @@ class AnalyticRenderer:
                 continue
             level = levels[x.front]
             to_texels = self._texel_map(level, x.B, x.R, x.t)
-            for r0, r1, c0, c1, exact in _bands(x.strips):
+            for r0, r1, c0, c1, exact in _bands(x):
                 tile = slice(r0 - rows.start, r1 - rows.start), \
                     slice(c0 - cols.start, c1 - cols.start)
                 for texels in offset_texels(view.xy[r0:r1 + 2, c0:c1 + 2], to_texels, offsets,
@@ -503,14 +507,16 @@ class AnalyticRenderer:
         """Where the board is in the image, and how large a pixel is on it.
 
         Works on the coarse nodes (cells of ``_CELL`` px) plus points along the outline, so
-        slivers thinner than a cell are found too. Returns (strips, footprint):
+        slivers thinner than a cell are found too. Returns (strips, footprint, rough):
 
         * strips [(r0, r1, c0, c1, exact)]: pixel row/column ranges that contain every pixel
           seeing the board (and a margin of one cell); ``exact`` where the texel map is not
           smooth enough to interpolate: near the plane's horizon, or where rays meet the plane
           behind the camera (w <= 0), or where depth changes by more than ``_MAX_DEPTH_SLOPE``
           per pixel (interpolation error (1/4) |w'| / w px, bilinear midpoint error of a/w);
-        * footprint: the largest pixel footprint on the visible board, mm per px.
+        * footprint: the largest pixel footprint on the visible board, mm per px;
+        * rough: (rows, cols) uint8, the cells where the map is not smooth (and a ring around
+          them), by which strips are ``exact``; None when the board is not seen.
         """
         rays, cam = view, self.camera
         H, W = cam.height, cam.width
@@ -543,7 +549,7 @@ class AnalyticRenderer:
         cells = np.clip(np.floor(euv / _CELL).astype(int), 0, [n_cells[1] - 1, n_cells[0] - 1])
         board[cells[:, 1], cells[:, 0]] = 1
         if not board.any():
-            return [], 0.0
+            return [], 0.0, None
         board = cv2.dilate(board, np.ones((3, 3), np.uint8))
         # One more ring of cells for the margin pixels the interpolation reads.
         rough = cv2.dilate(cells_touching(rough, n_cells), np.ones((3, 3), np.uint8))
@@ -553,7 +559,8 @@ class AnalyticRenderer:
             strips.append((a * _CELL, min((a + 1) * _CELL, H), b0 * _CELL,
                            min((b1 + 1) * _CELL, W), bool(rough[a, b0:b1 + 1].any())))
         # The footprint varies smoothly: a sparse subset of the outline points is enough.
-        return strips, self._footprint(np.concatenate([rays.node_xy[hit], exy[::16]]), B, view)
+        footprint = self._footprint(np.concatenate([rays.node_xy[hit], exy[::16]]), B, view)
+        return strips, footprint, rough
 
     def _footprint(self, xy: np.ndarray, B: np.ndarray, view: RayView) -> float:
         """Largest pixel footprint (mm per px) at normalized points xy (N, 2) on the board."""

@@ -211,6 +211,21 @@ def test_each_subframe_samples_every_row_and_column_of_the_pixel(s):
         assert len(cells) == s * s
 
 
+def test_motion_bands_are_exact_wherever_a_cell_they_span_is_rough():
+    """A sub-frame draws consecutive smooth strips as one band over their widest columns; the
+    band interpolates texel coordinates only if none of the cells it spans is rough (a plane's
+    horizon beside the board would otherwise be interpolated across)."""
+    from stereo_bench.render.analytic import _CELL, _Seen, _bands
+    rough = np.zeros((3, 4), np.uint8)
+    strips = [(0, _CELL, 0, 2 * _CELL, False), (_CELL, 2 * _CELL, 2 * _CELL, 4 * _CELL, False),
+              (2 * _CELL, 3 * _CELL, 0, _CELL, True)]
+    seen = _Seen(np.eye(3), np.eye(3), np.zeros(3), strips, rough, 1.0, True)
+    smooth, edge = _bands(seen)
+    assert smooth == (0, 2 * _CELL, 0, 4 * _CELL, False) and edge == strips[2]
+    rough[0, 3] = 1  # beside the first strip, inside the band's columns
+    assert _bands(seen)[0] == (0, 2 * _CELL, 0, 4 * _CELL, True)
+
+
 def test_motion_blur_keeps_the_truth_at_mid_exposure(rays):
     R, t = tilted(depth=420.0)
     omega, v = np.array([0.0, 0.0, 1.0]), np.array([150.0, 80.0, 0.0])  # rad/s, mm/s
