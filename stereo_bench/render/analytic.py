@@ -273,21 +273,39 @@ class _Seen:
     front: bool
 
 
-def _bands(seen: _Seen) -> list:
-    """The board's strips merged into bands of up to ``_BAND_STRIPS`` consecutive smooth ones,
-    each over their widest columns (the extra pixels see the background) and smooth only if
-    every cell it spans is: fewer, larger calls per sub-frame."""
+def _union(seen: list) -> list:
+    """The strips of every pose in ``seen`` (:class:`_Seen`), united row by row (the widest
+    columns, exact if any is)."""
+    rows = {}
+    for x in seen:
+        for r0, r1, c0, c1, exact in x.strips:
+            u = rows.get(r0)
+            rows[r0] = (r0, r1, c0, c1, exact) if u is None else \
+                (r0, r1, min(c0, u[2]), max(c1, u[3]), exact or u[4])
+    return [rows[r0] for r0 in sorted(rows)]
+
+
+def _bands(strips: list, rough: np.ndarray) -> list:
+    """The strips merged into bands of up to ``_BAND_STRIPS`` consecutive smooth ones, each
+    over their widest columns (the extra pixels see the background) and smooth only if no cell
+    it spans is ``rough`` (as :meth:`AnalyticRenderer._locate` gives them): fewer, larger
+    calls per sub-frame."""
     bands = []
-    for r0, r1, c0, c1, exact in seen.strips:
+    for r0, r1, c0, c1, exact in strips:
         if bands and not exact and not bands[-1][4] and bands[-1][1] == r0 and \
                 r1 - bands[-1][0] <= _BAND_STRIPS * _CELL:
             b0, _, d0, d1, _ = bands[-1]
             c0, c1 = min(c0, d0), max(c1, d1)
-            cells = seen.rough[b0 // _CELL:-(-r1 // _CELL), c0 // _CELL:-(-c1 // _CELL)]
+            cells = rough[b0 // _CELL:-(-r1 // _CELL), c0 // _CELL:-(-c1 // _CELL)]
             bands[-1] = (b0, r1, c0, c1, bool(cells.any()))
         else:
             bands.append((r0, r1, c0, c1, exact))
     return bands
+
+
+def _lagrange(nodes: np.ndarray, x: float) -> np.ndarray:
+    """Weights of the values at ``nodes`` in their interpolating polynomial's value at x."""
+    return np.array([np.prod([(x - m) / (n - m) for m in nodes if m != n]) for n in nodes])
 
 
 class AnalyticRenderer:
@@ -426,7 +444,11 @@ class AnalyticRenderer:
         swept along the motion). The texture level is the static render's
         (texels no larger than the footprint of one of its s x s samples, for the farthest
         sub-frame), lit at mid-exposure: over one exposure the shading changes to first order
-        in time, which the mean over a symmetric exposure cancels. Sums are integers (exact).
+        in time, which the mean over a symmetric exposure cancels. The board as made's shift
+        from its plane is computed at three sub-frames and interpolated quadratically in time
+        for the others (within 1e-3 px, tests/render/test_imaging.py). The sub-frames draw
+        bands of the strips all of them cover (:func:`_union`, :func:`_bands`). Sums are
+        integers (exact).
         """
         st = self.settings
         H, W = self.camera.height, self.camera.width
@@ -444,16 +466,40 @@ class AnalyticRenderer:
         rows, cols = self._board_box(strips, 0)
         total = np.zeros((rows.stop - rows.start, cols.stop - cols.start), dtype=np.int32)
         count = np.zeros(total.shape, dtype=np.uint8)  # sub-frames that drew each pixel
-        for x, offsets in zip(seen, time_area_offsets(len(poses), s)):
-            if x is None:
-                continue
-            level = levels[x.front]
-            to_texels = self._texel_map(level, x.B, x.R, x.t)
-            for r0, r1, c0, c1, exact in _bands(x):
-                tile = slice(r0 - rows.start, r1 - rows.start), \
-                    slice(c0 - cols.start, c1 - cols.start)
-                for texels in offset_texels(view.xy[r0:r1 + 2, c0:c1 + 2], to_texels, offsets,
-                                            exact):
+        k = len(poses)
+        offsets = time_area_offsets(k, s)
+        maps = [None if x is None else self._texel_map(levels[x.front], x.B, x.R, x.t)
+                for x in seen]
+        planes = [None if x is None else plane_texels(self._homography(levels[x.front], x.B))
+                  for x in seen]
+        shifts = [None if x is None or self._nominal else
+                  self._warp_shift(levels[x.front], x.B, x.R, x.t) for x in seen]
+        # The warp's shift changes smoothly over an exposure: computed at three sub-frames and
+        # interpolated (quadratic in time) for the others, when all see the same face.
+        keys = [0, k // 2, k - 1] if len(drawn) == k and k > 3 and shifts[0] is not None and \
+            len(levels) == 1 else None
+        times = (np.arange(k) + 0.5) / k
+        for r0, r1, c0, c1, exact in _bands(_union(drawn), np.bitwise_or.reduce(
+                [x.rough for x in drawn])):
+            xy = view.xy[r0:r1 + 2, c0:c1 + 2]  # pixels r0-1..r1, c0-1..c1
+            tile = slice(r0 - rows.start, r1 - rows.start), slice(c0 - cols.start, c1 - cols.start)
+            at_keys = [shifts[i](xy) for i in keys] if keys and not exact else None
+            for i, x in enumerate(seen):
+                if x is None or not any(a < r1 and b > r0 for a, b, *_ in x.strips):
+                    continue  # nothing of the board in these rows: background
+                to_texels = maps[i]
+                if not exact and shifts[i] is not None:
+                    texels = planes[i](xy, False)
+                    if at_keys is None:
+                        texels += shifts[i](xy)
+                    else:
+                        for w, shift in zip(_lagrange(times[keys], times[i]), at_keys):
+                            cv2.scaleAdd(shift, w, texels, dst=texels)
+
+                    def to_texels(xy, cut, texels=texels):
+                        return texels
+                level = levels[x.front]
+                for texels in offset_texels(xy, to_texels, offsets[i], exact):
                     total[tile] += cv2.remap(level.image, texels, None, cv2.INTER_LINEAR,
                                              borderMode=cv2.BORDER_CONSTANT,
                                              borderValue=background)
@@ -469,39 +515,62 @@ class AnalyticRenderer:
         coordinates (h, w, 2) float32 (``OUTSIDE`` where the ray meets the board behind the
         camera, when ``cut`` asks for it): the plane homography for a board that is exactly its
         pattern, else the ray's intersection with the physical board (board_shape.py)."""
+        plane = plane_texels(self._homography(level, B))
+        if self._nominal:
+            return plane
+        exact = self._board_texels(level, R, t)
+        shift = self._warp_shift(level, B, R, t)
+
+        def surface(xy, cut):
+            return exact(xy) if cut else plane(xy, False) + shift(xy)
+        return surface
+
+    @property
+    def _nominal(self) -> bool:
+        shape = self.settings.board
+        return shape is None or shape.is_nominal
+
+    @staticmethod
+    def _homography(level: "_Level", B: np.ndarray) -> np.ndarray:
+        """normalized (x, y) -> texel (j, i) of the level, 3x3, for board_from_normalized B."""
         A = np.array([[level.px_per_mm, 0, -level.texel_offset[0]],
                       [0, level.px_per_mm, -level.texel_offset[1]], [0, 0, 1]])
-        shape = self.settings.board
-        if shape is None or shape.is_nominal:
-            return plane_texels(A @ B)  # normalized (x, y) -> texel (j, i) of the level
+        return A @ B
 
+    def _board_texels(self, level: "_Level", R: np.ndarray, t: np.ndarray):
+        """normalized (h, w, 2) -> the level's texels where each ray meets the board as made
+        at (R, t), ``OUTSIDE`` behind the camera."""
+        shape = self.settings.board
         R32, t32 = R.astype(np.float32), t.astype(np.float32)
         offset = level.texel_offset.astype(np.float32)
         scale = np.float32(level.px_per_mm)
-        plane = plane_texels(A @ B)
 
         def exact(xy):
             nominal, depth = shape.nominal_on_rays(xy, R32, t32)
             texels = nominal * scale - offset
             texels[~(depth > 0)] = OUTSIDE  # behind the camera, or parallel to the board
             return texels
+        return exact
 
-        def surface(xy, cut):
-            if cut:
-                return exact(xy)
-            # Where the map is smooth, the board's departure from its plane (a scale and a
-            # warp of millimetres) moves texels smoothly: exact on a grid of at most
-            # _SHAPE_CELL px, bilinear in between, on top of the exact plane map.
+    def _warp_shift(self, level: "_Level", B: np.ndarray, R: np.ndarray, t: np.ndarray):
+        """normalized (h, w, 2) of a smooth window -> the board as made's texels minus its
+        plane's (h, w, 2) float32 at (R, t)."""
+        exact = self._board_texels(level, R, t)
+        plane = plane_texels(self._homography(level, B))
+
+        def shift(xy):
+            # The board's departure from its plane (a scale and a warp of millimetres) moves
+            # texels smoothly: exact on a grid of at most _SHAPE_CELL px, bilinear in between.
             h, w = xy.shape[:2]
             rows = np.linspace(0, h - 1, -(-(h - 1) // _SHAPE_CELL) + 1).round().astype(int)
             cols = np.linspace(0, w - 1, -(-(w - 1) // _SHAPE_CELL) + 1).round().astype(int)
             coarse = np.ascontiguousarray(xy[np.ix_(rows, cols)])
-            shift = exact(coarse) - plane(coarse, False)
+            nodes = exact(coarse) - plane(coarse, False)
             # Separable linear interpolation in float (cv2.remap would round its positions to
             # 1/32 of a cell).
-            shift = linear_interpolation(shift.astype(np.float32), rows, h, 0)
-            return plane(xy, False) + linear_interpolation(shift, cols, w, 1)
-        return surface
+            nodes = linear_interpolation(nodes.astype(np.float32), rows, h, 0)
+            return linear_interpolation(nodes, cols, w, 1)
+        return shift
 
     def _locate(self, B: np.ndarray, R: np.ndarray, t: np.ndarray, view: RayView):
         """Where the board is in the image, and how large a pixel is on it.

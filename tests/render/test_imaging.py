@@ -215,15 +215,45 @@ def test_motion_bands_are_exact_wherever_a_cell_they_span_is_rough():
     """A sub-frame draws consecutive smooth strips as one band over their widest columns; the
     band interpolates texel coordinates only if none of the cells it spans is rough (a plane's
     horizon beside the board would otherwise be interpolated across)."""
-    from stereo_bench.render.analytic import _CELL, _Seen, _bands
+    from stereo_bench.render.analytic import _CELL, _bands
     rough = np.zeros((3, 4), np.uint8)
     strips = [(0, _CELL, 0, 2 * _CELL, False), (_CELL, 2 * _CELL, 2 * _CELL, 4 * _CELL, False),
               (2 * _CELL, 3 * _CELL, 0, _CELL, True)]
-    seen = _Seen(np.eye(3), np.eye(3), np.zeros(3), strips, rough, 1.0, True)
-    smooth, edge = _bands(seen)
+    smooth, edge = _bands(strips, rough)
     assert smooth == (0, 2 * _CELL, 0, 4 * _CELL, False) and edge == strips[2]
     rough[0, 3] = 1  # beside the first strip, inside the band's columns
-    assert _bands(seen)[0] == (0, 2 * _CELL, 0, 4 * _CELL, True)
+    assert _bands(strips, rough)[0] == (0, 2 * _CELL, 0, 4 * _CELL, True)
+
+
+def test_the_warps_shift_over_an_exposure_is_quadratic_in_time(rays):
+    """An exposure computes the board-as-made's texel shift at three sub-frames and
+    interpolates it for the others: within 1e-3 px of the shift computed at every sub-frame,
+    for a bowed, misprinted board turning and moving fast (25 px of motion)."""
+    from stereo_bench.render.analytic import _lagrange
+    shape = BoardShape.for_pattern(BOARD, aspect_error_pct=0.2, warp_mm=(1.6, 1.0))
+    renderer = AnalyticRenderer(PINHOLE, BOARD, RenderSettings(motion=Motion(33.0, 1.0),
+                                                                board=shape), rays(PINHOLE))
+    R, t = tilted(depth=420.0)
+    velocity = (np.array([1.5, -1.0, 2.0]), np.array([250.0, 150.0, 100.0]))
+    poses = renderer._exposure_poses(R, t, velocity)
+    k = len(poses)
+    view = renderer.rays.toward(OBJ @ R.T + t)
+    seen = [renderer._seen(Rk, tk, view) for Rk, tk in poses]
+    level = renderer._level(max(x.footprint for x in seen) / 2, True, R, t)
+    shifts = [renderer._warp_shift(level, x.B, x.R, x.t) for x in seen]
+    r0, r1, c0, c1, _ = seen[k // 2].strips[len(seen[k // 2].strips) // 2]
+    xy = view.xy[r0:r1 + 2, c0:c1 + 2]
+    keys = [0, k // 2, k - 1]
+    at_keys = [shifts[i](xy) for i in keys]
+    times = (np.arange(k) + 0.5) / k
+    texels = renderer._texel_map(level, seen[k // 2].B, seen[k // 2].R, seen[k // 2].t)(xy, False)
+    texel_px = 1 / min(np.linalg.norm(np.diff(texels, axis=a), axis=-1).min() for a in (0, 1))
+    err = max(np.abs(sum(w * a for w, a in zip(_lagrange(times[keys], times[i]), at_keys))
+                     - shifts[i](xy)).max() for i in range(k))
+    moved = np.abs(at_keys[2] - at_keys[0]).max()
+    print(f"{k} sub-frames: the shift moves {moved * texel_px:.3f} px, interpolated within "
+          f"{err * texel_px:.2e} px")
+    assert k == 32 and moved * texel_px > 0.01 and err * texel_px < 1e-3
 
 
 def test_motion_blur_keeps_the_truth_at_mid_exposure(rays):
