@@ -10,7 +10,8 @@ the analytic renderer on one), with the versions. Needs the worker environment
 (`make blender`); without it, says so and stops.
 
     python benchmarks/blender_renders.py [--frames-wide 8] [--frames-rect 2] [--samples 64]
-                                         [--montage docs/images/blender_vs_analytic.png]
+        [--cameras wide rectilinear] [--environments clean noisy] [--patterns ...]
+        [--montage docs/images/blender_vs_analytic.png]
 """
 
 from __future__ import annotations
@@ -65,6 +66,10 @@ def main(argv=None) -> int:
     parser.add_argument("--frames-rect", type=int, default=2)
     parser.add_argument("--samples", type=int, default=64, help="Cycles samples per pixel")
     parser.add_argument("--patterns", nargs="+", default=list(METHODS))
+    parser.add_argument("--cameras", nargs="+", default=["wide", "rectilinear"],
+                        choices=["wide", "rectilinear"])
+    parser.add_argument("--environments", nargs="+", default=["clean", "noisy"],
+                        choices=["clean", "noisy"])
     parser.add_argument("--montage", type=Path, help="write the side-by-side figure here")
     args = parser.parse_args(argv)
     reason = environment.status()
@@ -80,9 +85,10 @@ def main(argv=None) -> int:
     print(row("---" for _ in COLUMNS))
     shown = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for camera, frames in (("wide", args.frames_wide), ("rectilinear", args.frames_rect)):
+        for camera in args.cameras:
+            frames = args.frames_wide if camera == "wide" else args.frames_rect
             for kind in args.patterns:
-                for env in ("clean", "noisy"):
+                for env in args.environments:
                     for renderer in ("analytic", "blender"):
                         cfg = variant(camera, kind, env, renderer, frames, args.samples)
                         dataset = write_dataset(cfg, Path(tmp) / f"{camera}_{kind}_{env}_"

@@ -545,10 +545,13 @@ class RendererConfig(_Strict):
     """Which backend forms the images: ``analytic`` (the package's exact renderer, every part of
     the imaging model) or ``blender`` (Cycles in the worker environment, render/blender/: a
     matte textured plane lit by the environment's light, the lens applied by one exact remap;
-    ``samples`` per pixel, ``threads`` for Cycles, None: all cores)."""
+    ``samples`` per pixel at most, ``noise_threshold`` Cycles' adaptive sampling (a pixel stops
+    once its estimated noise is below it, relative to its value; 0: every pixel takes every
+    sample), ``threads`` for Cycles, None: all cores)."""
 
     kind: Literal["analytic", "blender"] = "analytic"
     samples: Int = Field(64, ge=1, le=4096)
+    noise_threshold: float = Field(0.01, ge=0.0, le=1.0)
     threads: Int | None = Field(None, ge=1, le=256)
 
 

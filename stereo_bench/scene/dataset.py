@@ -109,7 +109,8 @@ def _renderers(cfg: RigConfig, paths: DatasetPaths):
 
     def make(cam, pattern, settings, R, t):
         made.append(BlenderRenderer(cam, pattern, settings, worker, paths.blender,
-                                    texture_density(cam, pattern, R, t), cfg.renderer.samples))
+                                    texture_density(cam, pattern, R, t), cfg.renderer.samples,
+                                    noise_threshold=cfg.renderer.noise_threshold))
         return made[-1]
 
     with Worker("render", cfg.renderer.threads) as worker:

@@ -171,6 +171,35 @@ def test_blender_board_renders_on_the_ground_truth(tmp_path, kind):
 
 
 @needs_worker
+@pytest.mark.parametrize("kind", ["clean", "noisy"])
+def test_the_board_region_renders_the_whole_frame_s_pixels(tmp_path, monkeypatch, kind):
+    """Cycles renders only the board's box (and a margin); the frame around it is the world's
+    grey it would have rendered there: the same 8-bit images as the whole frame rendered, and
+    the box is smaller than the frame on the spring's far end. Adaptive sampling off in both,
+    so that each pixel takes the same samples."""
+    from stereo_bench.render.blender.board import BlenderRenderer
+
+    boxes = []
+    region = BlenderRenderer._region
+
+    def recorded(self, R, t):
+        boxes.append(region(self, R, t))
+        return boxes[-1]
+
+    data = small_rig(environment_kind=kind).model_dump(mode="json")
+    data["renderer"]["noise_threshold"] = 0.0
+    monkeypatch.setattr(BlenderRenderer, "_region", recorded)
+    cut = write_dataset(parse_rig(data, "test"), tmp_path / "region")
+    monkeypatch.setattr(BlenderRenderer, "_region", lambda self, R, t: None)
+    whole = write_dataset(parse_rig(data, "test"), tmp_path / "whole")
+    pinhole = PinholeView.of(cut.cameras[0]).pinhole
+    x0, y0, x1, y1 = boxes[-1]
+    assert (x1 - x0) * (y1 - y0) < 0.5 * pinhole.width * pinhole.height, boxes
+    for f in range(cut.frames):
+        assert np.array_equal(cut.image(0, f), whole.image(0, f)), f
+
+
+@needs_worker
 def test_body_render_and_blazepose(tmp_path):
     """One frame of the body from two cameras, and BlazePose on it: every mapped joint is
     found, within a few tens of px of the projected truth (the definitions differ)."""

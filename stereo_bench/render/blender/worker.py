@@ -42,7 +42,7 @@ class Blender:
         self.objects = {}
 
     # --- scene --------------------------------------------------------------------------------
-    def _reset(self, samples, threads, raw):
+    def _reset(self, samples, threads, raw, noise_threshold=0.0):
         bpy = self.bpy
         bpy.ops.wm.read_factory_settings(use_empty=True)
         self.objects = {}
@@ -51,7 +51,11 @@ class Blender:
         cycles = scene.cycles
         cycles.device = "CPU"
         cycles.samples = int(samples)
-        cycles.use_adaptive_sampling = False
+        # Adaptive sampling: a pixel of flat print or background has no variance and stops
+        # early; the board's edges, where the pixel's area is split, take every sample.
+        cycles.use_adaptive_sampling = noise_threshold > 0
+        if noise_threshold > 0:
+            cycles.adaptive_threshold = float(noise_threshold)
         cycles.use_denoising = False
         # A box filter one pixel wide: each pixel is the mean over its own area, as a sensor's
         # pixel integrates (Blackman-Harris, the default, reaches into the neighbours).
@@ -186,7 +190,8 @@ class Blender:
     # --- requests -----------------------------------------------------------------------------
     def board(self, req):
         """Set up a board scene: the textured plane, the camera, the light."""
-        self._reset(req["samples"], req.get("threads"), raw=True)
+        self._reset(req["samples"], req.get("threads"), raw=True,
+                    noise_threshold=req.get("noise_threshold", 0.0))
         light = req["light"]
         emission = light is None
         self._world([req["background"]] * 3, 0.0 if emission else light["ambient"])
@@ -215,10 +220,22 @@ class Blender:
         return {}
 
     def board_frame(self, req):
-        """Render the board at ``cam_from_board`` (4x4, m) into ``out``."""
+        """Render the board at ``cam_from_board`` (4x4, m) into ``out``; with ``region``
+        [x0, y0, x1, y1] (pixels, ends exclusive, rows from the top) only those pixels (the
+        rest of the file is left at 0: the caller knows what is there)."""
         pose = _matmul(FLIP, req["cam_from_board"])
         cam = self.objects["camera"][0]
         self.board_obj.matrix_world = cam.matrix_world @ _as_matrix(self.bpy, pose)
+        render = self.bpy.context.scene.render
+        region = req.get("region")
+        render.use_border = region is not None
+        if region is not None:
+            x0, y0, x1, y1 = region
+            width, height = render.resolution_x, render.resolution_y
+            render.use_crop_to_border = False
+            render.border_min_x, render.border_max_x = x0 / width, x1 / width
+            # Blender's border rows run up from the bottom of the image.
+            render.border_min_y, render.border_max_y = 1 - y1 / height, 1 - y0 / height
         self._render(req["out"])
         return {}
 
