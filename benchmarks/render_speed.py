@@ -64,7 +64,7 @@ def main() -> None:
         print(f"\n{name} {cam.width}x{cam.height}: precompute PixelRays {cpu:.2f} s CPU "
               f"({wall:.2f} s wall), {rays.xy.nbytes / 2**20:.0f} MiB; "
               f"{len(frames)} frames of {rig.pattern.kind}; clean aim < {aim * 1e3:.0f} "
-              f"ms/frame, the imaging model's aim at most 2x clean")
+              f"ms/frame, the imaging model's aim at most 3x clean")
         print(f"  {'s':>2} {'environment':<19} {'CPU ms/frame mean [min..max]':>30} "
               f"{'wall ms/frame':>14} {'x clean':>8}")
         for s in args.supersampling:
