@@ -154,6 +154,7 @@ def _camera_job(args) -> tuple[float, object]:
     given, now holding that camera's frames)."""
     cfg_json, out, c, detections = args
     cfg = RigConfig.model_validate(cfg_json)
+    cv2.setNumThreads(1)  # the processes share the cores: OpenCV's pool in each would oversubscribe
     paths = DatasetPaths(Path(out))
     with _renderers(cfg, paths) as make_renderer:
         seconds = _render_camera(cfg, Rig.from_config(cfg), c, paths, make_renderer,
