@@ -187,8 +187,8 @@ def run_seed(cfg: RigConfig, out: Path, names: list[str]) -> dict:
     """Every tool on the session of seed ``cfg.seed`` (rendered and detected once, reused)."""
     trial = RunPaths(out).trial(cfg.seed)
     notes = Notes()
-    ds = dataset_of(cfg, trial, None, None, notes)
-    dets, detect_s, det_fp = load_or_detect(ds, trial, notes=notes)
+    ds, detected = dataset_of(cfg, trial, None, None, notes)
+    dets, detect_s, det_fp = load_or_detect(ds, trial, notes=notes, detected=detected)
     session = session_of(ds, dets)
     entries = {}
     for name in names:
