@@ -100,9 +100,7 @@ class DatasetDetections:
         for c, name in enumerate(cameras):
             dets = [self._frames[c, f] for f in range(frames)]
             out.append(CameraDetections(
-                name, self.pattern.kind, self.method,
-                np.stack([d.points for d in dets]) if dets else
-                np.full((0, len(self.pattern.ids()), 2), np.nan),
+                name, self.pattern.kind, self.method, np.stack([d.points for d in dets]),
                 np.array([d.found for d in dets], dtype=bool), self.pattern.ids(),
                 {f: d.error for f, d in enumerate(dets) if not d.found}))
         return out
