@@ -5,6 +5,7 @@ ChArUco; every point then measured by the saddle fit or the disc centroid.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -85,17 +86,25 @@ def detect(image: np.ndarray, pattern: Pattern, method: str | None = None) -> De
     # the inverted image, and a board not found as described is also tried in the other
     # polarity (an inverted board nobody said was inverted; a print seen against the light).
     first = 255 - gray if pattern.inverted else gray
-    found = _detect_in(first, pattern, method)
+    search = _search_image(first, pattern)
+    found = _detect_in(first, search, pattern, method)
     if found.found:
         return found
-    other = _detect_in(255 - first, pattern, method)
+    # The three other ChArUco searches (other polarity, mirrored) cost three marker searches
+    # each time the board is out of view, as it is in most of a studio's frames: one marker
+    # search for every marker of either polarity, as printed or mirrored, tells first whether
+    # any of them can find something.
+    if pattern.kind == "charuco" and not _any_marker_seen(search.image, pattern):
+        return found
+    other = _detect_in(255 - first, _search_image(255 - first, pattern), pattern, method)
     if other.found or pattern.kind != "charuco":
         return other if other.found else found
     # A one-sided ChArUco print seen from behind (through thin paper or acrylic) is its mirror
     # image, whose markers read as no id; mirrored back, each corner keeps its id, so it is the
     # same board point. A chessboard or circle grid mirrored is found in the image as it is.
     for polarity in (first, 255 - first):
-        back = _detect_in(np.ascontiguousarray(polarity[:, ::-1]), pattern, method)
+        mirrored = np.ascontiguousarray(polarity[:, ::-1])
+        back = _detect_in(mirrored, _search_image(mirrored, pattern), pattern, method)
         if back.found:
             points = back.points.copy()
             points[:, 0] = gray.shape[1] - 1 - points[:, 0]  # pixel centres: x -> W - 1 - x
@@ -103,13 +112,17 @@ def detect(image: np.ndarray, pattern: Pattern, method: str | None = None) -> De
     return found
 
 
-def _detect_in(gray, pattern: Pattern, method: str) -> Detection:
+def _search_image(gray, pattern: Pattern) -> "_SearchImage":
+    return _SearchImage.of(gray, CHARUCO_MIN_SEARCH_SIDE if pattern.kind == "charuco" else 0)
+
+
+def _detect_in(gray, search: "_SearchImage", pattern: Pattern, method: str) -> Detection:
     try:
         if pattern.kind == "checkerboard":
-            return _detect_checkerboard(gray, _SearchImage.of(gray), pattern, method)
+            return _detect_checkerboard(gray, search, pattern, method)
         if pattern.kind == "charuco":
-            return _detect_charuco(gray, _SearchImage.of(gray, CHARUCO_MIN_SEARCH_SIDE), pattern)
-        return _detect_circles(gray, _SearchImage.of(gray), pattern)
+            return _detect_charuco(gray, search, pattern)
+        return _detect_circles(gray, search, pattern)
     except cv2.error as e:  # OpenCV asserts on some degenerate candidate sets: a failed frame
         return failed_detection(pattern, f"OpenCV error: {e.err or e}")
 
@@ -331,7 +344,7 @@ def _detect_charuco(gray, search: _SearchImage, pattern: Charuco) -> Detection:
     # scaled-back markers and refines them on the full image.
     aruco = cv2.aruco.ArucoDetector(board.getDictionary(), cv2.aruco.DetectorParameters())
     markers, marker_ids, _ = aruco.detectMarkers(search.image)
-    if marker_ids is None:
+    if marker_ids is None or len(marker_ids) == 0:
         return failed_detection(pattern, "no ArUco marker of the board was found")
     markers = tuple(search.to_full(m).astype(np.float32) for m in markers)
     # A two-sided board: one side faces the camera; its marker ids tell which.
@@ -358,3 +371,29 @@ def _detect_charuco(gray, search: _SearchImage, pattern: Charuco) -> Detection:
         front[pattern.back_to_front] = points
         points = front
     return Detection(points, pattern.ids(), True)
+
+
+def _any_marker_seen(search_image: np.ndarray, pattern: Charuco) -> bool:
+    """Whether one marker search of ``search_image`` finds any marker of the board's dictionary
+    in either polarity (``detectInvertedMarker``), as printed or mirrored."""
+    detector = cv2.aruco.ArucoDetector(_with_mirrored_markers(pattern.dictionary),
+                                       _INVERTED_TOO)
+    return len(detector.detectMarkers(search_image)[0]) > 0
+
+
+_INVERTED_TOO = cv2.aruco.DetectorParameters()
+_INVERTED_TOO.detectInvertedMarker = True
+
+
+@functools.cache
+def _with_mirrored_markers(name: str) -> cv2.aruco.Dictionary:
+    """The dictionary ``name`` followed by each of its markers mirrored (ids + its size), with
+    its own error correction. A mirror about the other axis is this one turned half a turn,
+    which identification tries."""
+    plain = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
+    n = plain.markerSize
+    mirrored = [cv2.aruco.Dictionary.getByteListFromBits(
+        np.ascontiguousarray(cv2.aruco.Dictionary.getBitsFromByteList(row[None], n)[:, ::-1]))
+        for row in plain.bytesList]
+    both = np.concatenate([plain.bytesList, np.concatenate(mirrored)])
+    return cv2.aruco.Dictionary(both, n, plain.maxCorrectionBits)

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
-from stereo_bench.detect.boards import detect
+from stereo_bench.detect.boards import _any_marker_seen, detect
 from stereo_bench.core.patterns import (PATTERNS, AsymmetricCircles, Charuco, Checkerboard,
                                         SymmetricCircles, pattern_from_config)
 
@@ -211,6 +211,16 @@ def test_charuco_seen_from_behind_is_found_mirrored_back():
         found = detect(np.ascontiguousarray(seen), board)
         assert found.found and np.isfinite(found.points).all()
         assert np.abs(found.points - expected).max() < TOLERANCE_PX
+
+
+def test_one_marker_search_tells_whether_a_charuco_board_is_in_view():
+    """The search that decides whether the other polarity and the mirror are tried finds the
+    board's markers in all four prints, and none in a board without markers."""
+    board, px_per_mm = Charuco(), 6.61
+    image = view(board, px_per_mm, 1.0)
+    for seen in (image, 255 - image, image[:, ::-1], 255 - image[:, ::-1]):
+        assert _any_marker_seen(np.ascontiguousarray(seen), board)
+    assert not _any_marker_seen(view(Checkerboard(), px_per_mm, 1.0), board)
 
 
 @pytest.mark.parametrize("px_per_mm, sigma", SCALES)
