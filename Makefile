@@ -15,7 +15,7 @@ $(BIN)/stereo-bench: pyproject.toml
 	# aniposelib, to read anipose files back in the tests and to calibrate in compare-tools
 	# (its triangulation imports jax): without its dependencies, since it asks for
 	# opencv-contrib-python, which would replace the headless OpenCV in the same cv2.
-	$(BIN)/python -m pip install --quiet numba pandas tqdm toml "jax[cpu]==0.10.2"
+	$(BIN)/python -m pip install --quiet pandas tqdm toml "jax[cpu]==0.10.2"
 	$(BIN)/python -m pip install --quiet --no-deps aniposelib==0.8.0
 	# caliscope, to read camera_array.toml files back in the tests and to calibrate in
 	# compare-tools: its camera array and calibration need only rtoml and platformdirs (and

@@ -32,13 +32,15 @@ COLUMNS = ("pattern", "camera", "detector", "frames found", "points found", "mea
            "mean dx", "mean dy", "flips", "s/frame")
 
 
-def rig_with_board(path: Path, kind: str, frames: int):
-    """The rig of ``path`` with its board replaced by a default ``kind`` and ``frames`` frames."""
+def rig_with_board(path: Path, kind: str, frames: int, environment: str = "clean"):
+    """The rig of ``path`` with its board replaced by a default ``kind``, ``frames`` frames and
+    the imaging ``environment`` (a preset name)."""
     data = load_rig(path).model_dump(mode="json")
     data["pattern"] = {"kind": kind}
     data["trajectory"]["frames"] = frames
+    data["environment"] = {"kind": environment}
     data["name"] = f"{data['name']}_{kind}"
-    return parse_rig(data, f"{path} with pattern {kind}")
+    return parse_rig(data, f"{path} with pattern {kind}, environment {environment}")
 
 
 def row(cells) -> str:

@@ -2,8 +2,8 @@
 
 For each of the four boards and each camera (rectilinear 4096 x 3072 and wide-angle 640 x 480,
 from configs/paper/*_mono.yaml with the board swapped in, as benchmarks/detection_accuracy.py
-renders them), the same clean frames are detected, in turn frame by frame so that both see the
-same load on this machine, by
+renders them, clean unless ``--environment`` names another imaging preset), the same frames are
+detected, in turn frame by frame so that both see the same load on this machine, by
 
 * stereo_bench.detect.dataset (its default method): the search on a reduced copy, then every point
   measured at full resolution (the saddle fit, or the disc centroid);
@@ -22,6 +22,7 @@ flipped), orientation flips, and wall-clock seconds per frame, with the OpenCV v
 thread count (timings depend on both).  It prints, it does not assert.
 
     python benchmarks/detection_speed.py [--frames 8] [--keep DIR] [--baseline REV]
+        [--environment noisy] [--patterns checkerboard charuco]
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ import cv2
 import numpy as np
 
 from detection_accuracy import CAMERAS, rig_with_board, row
+from stereo_bench.config.environments import PRESETS as ENVIRONMENTS
 from stereo_bench.scene.dataset import Dataset, write_dataset
 from stereo_bench.detect.boards import METHODS, detect
 from stereo_bench.detect.dataset import CameraDetections, detection_errors
@@ -94,17 +96,19 @@ def opencv_pipeline(gray: np.ndarray, pattern) -> np.ndarray:
     return points
 
 
-def dataset_for(root: Path, camera: str, path: Path, kind: str, frames: int) -> Dataset:
-    """The clean dataset of ``kind`` on ``camera`` under ``root``: reused if one with ``frames``
-    frames is there already (``--keep``), else rendered."""
-    out = root / f"{camera}_{kind}"
+def dataset_for(root: Path, camera: str, path: Path, kind: str, frames: int,
+                environment: str) -> Dataset:
+    """The dataset of ``kind`` on ``camera`` in ``environment`` under ``root``: reused if one
+    with ``frames`` frames is there already (``--keep``), else rendered."""
+    out = root / (f"{camera}_{kind}" if environment == "clean" else
+                  f"{camera}_{kind}_{environment}")
     try:
         dataset = Dataset.load(out)
         if dataset.frames == frames:
             return dataset
     except (OSError, ValueError):
         pass
-    return write_dataset(rig_with_board(path, kind, frames), out)
+    return write_dataset(rig_with_board(path, kind, frames, environment), out)
 
 
 @contextmanager
@@ -150,6 +154,10 @@ def main(argv=None) -> None:
                                                   "a temp dir")
     parser.add_argument("--baseline", metavar="REV", help="also time git revision REV's "
                                                           "detection on the same frames")
+    parser.add_argument("--environment", default="clean", choices=ENVIRONMENTS,
+                        help="the imaging preset the frames are rendered in (default clean)")
+    parser.add_argument("--patterns", nargs="+", choices=list(METHODS), default=list(METHODS),
+                        help="the boards measured (default: all four)")
     args = parser.parse_args(argv)
     if args.frames < 1:
         raise ValueError(f"--frames: expected a positive frame count, got {args.frames}")
@@ -163,14 +171,15 @@ def main(argv=None) -> None:
             detectors = {f"stereo_bench@{args.baseline}": baseline, **detectors}
             columns += ("max |new - base| px", "same NaN rows")
         print(f"OpenCV {cv2.__version__} ({cv2.getNumThreads()} threads), {args.frames} frames "
-              f"per dataset, clean renders; distances in px against the ground truth\n")
+              f"per dataset, {args.environment} renders; distances in px against the ground "
+              "truth\n")
         print(row(columns))
         print(row("---" for _ in columns))
         root = args.keep or Path(tmp)
-        for kind in METHODS:
+        for kind in args.patterns:
             for camera, path in CAMERAS.items():
-                measure(dataset_for(root, camera, path, kind, args.frames), camera, kind,
-                        detectors, args.baseline)
+                measure(dataset_for(root, camera, path, kind, args.frames, args.environment),
+                        camera, kind, detectors, args.baseline)
 
 
 def measure(dataset: Dataset, camera: str, kind: str, detectors: dict, baseline: str | None):

@@ -7,19 +7,13 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
 from .saddle import nearest_mm
 
 
 DISC_GUARD_PX = 2.0
-
-
-# Window pixels measured at once: all the wide camera's discs fit in one batch; the 4096 x 3072
-# camera's (10^4-10^5 px each) go in batches of 2 MB float arrays (2^16-2^20 px per batch
-# measured: 2^18 was fastest there, 10 % ahead of 2^17 and 2^19).
-_BATCH_PX = 1 << 18
 
 
 def measured_discs(gray, points: np.ndarray, affines: np.ndarray, pattern, passes: int = 4):
@@ -63,8 +57,8 @@ def _measure_discs(gray, points: np.ndarray, affines: np.ndarray, pattern, diame
     its radius) is the imaged disc's area in px^2 (blur moves darkness about but keeps its sum),
     |det A^-1| takes it to board mm^2; the circle of that area has the disc's diameter.  NaN for
     discs whose window is cut.
-    The discs are measured together, in batches of similar window size (``_measure_batch``): one
-    disc at a time cost more in numpy calls than in arithmetic on the wide camera's small windows.
+    The discs are measured together (``_measure_all``), each window's pixels in one compiled
+    pass.
     """
     object_xy = pattern.object_points()[:, :2]
     r_disc = diameter_mm / 2
@@ -80,25 +74,18 @@ def _measure_discs(gray, points: np.ndarray, affines: np.ndarray, pattern, diame
     # A disc whose rim touches the print's edge has no paper around it.
     refined = np.where(np.all(room >= r_disc, axis=1)[:, None], points, np.nan)
     diameters = np.full(len(points), np.nan)
-    todo = np.flatnonzero(np.isfinite(refined).all(axis=1))
-    side = 2 * np.ceil(r_outer * stretch[todo]).astype(int) + 2  # px across a window, at most
-    todo, side = todo[np.argsort(side)], np.sort(side)
-    for batch in np.split(np.arange(len(todo)),
-                          np.flatnonzero(np.diff(np.cumsum(side**2) // _BATCH_PX)) + 1):
-        if len(batch):
-            i = todo[batch]
-            refined[i], diameters[i] = _measure_batch(
-                gray, refined[i], A_inv[i], stretch[i], room[i], edges[i], side[batch[-1]],
-                r_disc, r_outer, iterations)
+    i = np.flatnonzero(np.isfinite(refined).all(axis=1))
+    refined[i], diameters[i] = _measure_all(gray, refined[i], A_inv[i], stretch[i], room[i],
+                                            edges[i], r_disc, r_outer, iterations)
     return refined, diameters
 
 
-def _measure_batch(gray, centres, A_inv, stretch, room, edges, side: int, r_disc: float,
-                   r_outer: float, iterations: int) -> tuple[np.ndarray, np.ndarray]:
-    """``_measure_discs`` for n discs at once, on windows at most ``side`` px across: centres
-    (n, 2) px and diameters (n,) mm, from the starting ``centres``, the maps px -> board mm
-    ``A_inv`` (n, 2, 2), their largest ``stretch`` (n,) px per mm, the ``room`` (n, 2) mm to
-    the print's outline and its ``edges`` (n, 2, 2) mm from each disc's centre."""
+def _measure_all(gray, centres, A_inv, stretch, room, edges, r_disc: float, r_outer: float,
+                 iterations: int) -> tuple[np.ndarray, np.ndarray]:
+    """``_measure_discs`` for n discs: centres (n, 2) px and diameters (n,) mm, from the
+    starting ``centres``, the maps px -> board mm ``A_inv`` (n, 2, 2), their largest
+    ``stretch`` (n,) px per mm, the ``room`` (n, 2) mm to the print's outline and its ``edges``
+    (n, 2, 2) mm from each disc's centre."""
     height, width = gray.shape
     r_inner = 1.25 * r_disc
     reach, disc_reach = r_outer * stretch, r_inner * stretch  # px
@@ -112,22 +99,22 @@ def _measure_batch(gray, centres, A_inv, stretch, room, edges, side: int, r_disc
         live, c = live[held], c[held]
         if not len(live):
             break
-        patch, ox, oy, valid, half = _windows(gray, c, reach[live], side)
-        # Board mm from the disc's centre, the window's x (a row) and y (a column) broadcast.
-        a = A_inv[live, :, :, None, None]
-        bx = a[:, 0, 0] * ox[:, None, :] + a[:, 0, 1] * oy[:, :, None]
-        by = a[:, 1, 0] * ox[:, None, :] + a[:, 1, 1] * oy[:, :, None]
-        radius2 = bx * bx + by * by  # mm^2
+        # Each window: the pixels within ``reach`` of the estimate, cut to the image.
+        lo = np.maximum(np.floor(c - reach[live, None]), 0).astype(np.int64)
+        hi = np.minimum(np.ceil(c + reach[live, None]) + 1, [width, height]).astype(np.int64)
         # Paper: the ring, inside the print; the disc window: point-symmetric about the
         # estimate and inside both the print and the image, so what lies beyond the board
-        # or the image never enters, and what is cut is cut on both sides.
-        box_mm = np.einsum("nij,nj->ni", np.abs(A_inv[live]), half)
-        inside = _within(bx, by, -room[live], room[live], box_mm) & valid
-        ring = ((radius2 >= r_inner**2) & (radius2 <= r_outer**2) & valid
-                & _within(bx, by, edges[live, 0], edges[live, 1], box_mm))
-        disc = (radius2 < r_inner**2) & inside
-        ring_normal, ring_rhs = _plane_sums(ring, patch, ox, oy)
-        disc_normal, disc_rhs = _plane_sums(disc, patch, ox, oy)
+        # or the image never enters, and what is cut is cut on both sides.  A window whose
+        # box lies inside the print, as most do, is inside at every pixel (no test made).
+        box_mm = np.einsum("nij,nj->ni", np.abs(A_inv[live]),
+                           np.maximum(c - lo, hi - 1 - c))
+        inside_print = np.concatenate([-room[live], room[live]], 1)
+        ring_print = edges[live].reshape(-1, 4)
+        sums = _window_sums(gray, c, A_inv[live], lo, hi, inside_print,
+                            _surely_within(inside_print, box_mm), ring_print,
+                            _surely_within(ring_print, box_mm), r_inner**2, r_outer**2)
+        ring_normal, ring_rhs = _normal_equations(sums[:, 0])
+        disc_normal, disc_rhs = _normal_equations(sums[:, 1])
         good = (ring_normal[:, 0, 0] >= 3) & (disc_normal[:, 0, 0] > 0)  # pixel counts
         centres[live[~good]] = np.nan
         live = live[good]
@@ -138,93 +125,139 @@ def _measure_batch(gray, centres, A_inv, stretch, room, edges, side: int, r_disc
         dark = (disc_normal[good] @ plane)[..., 0] - disc_rhs[good]  # sums of 1, x, y darkness
         centres[live] = c[good] + dark[:, 1:] / dark[:, :1]
         if k == iterations - 1:
-            diameters[live] = _diameters(radius2[good], inside[good], valid[good], patch[good],
-                                         ox[good], oy[good], plane[..., 0], r_disc,
-                                         np.abs(np.linalg.det(A_inv[live])))
+            diameters[live] = _diameters(gray, c[good], A_inv[live], lo[good], hi[good],
+                                         inside_print[good], _surely_within(
+                                             inside_print[good], box_mm[good]),
+                                         plane[..., 0], r_disc)
     diameters[~np.isfinite(centres).all(axis=1)] = np.nan
     return centres, diameters
 
 
-def _diameters(radius2, inside, valid, patch, ox, oy, plane, r_disc, det_inv):
-    """Disc diameters (n,) mm from the last window: its darkness below the white ``plane``
-    (n, 3) over the disc (radius 1.25 ``r_disc``), in units of the median darkness of its core
-    (inside half the radius), is its area in px^2; ``det_inv`` (n,) board mm^2 per px^2.  NaN
-    where the core is empty or the print's outline cuts the disc."""
-    r_inner = 1.25 * r_disc
-    core = (radius2 < (0.5 * r_disc) ** 2) & inside
-    whole = (radius2 < r_inner**2) & valid
-    n, y, x = np.nonzero(core)
-    weight = plane[n, 0] + plane[n, 1] * ox[n, x] + plane[n, 2] * oy[n, y] - patch[n, y, x]
-    contrast = _medians(weight, n, len(patch))
-    normal, rhs = _plane_sums(whole, patch, ox, oy)
-    area_px = ((normal @ plane[..., None])[:, 0, 0] - rhs[:, 0]) / contrast
-    cut = (whole & ~inside).any(axis=(1, 2))
+def _diameters(gray, c, A_inv, lo, hi, inside_print, sure_inside, plane, r_disc):
+    """Disc diameters (n,) mm from the last windows (about ``c``, pixels ``lo`` to ``hi``):
+    the darkness below the white ``plane`` (n, 3) over the disc (radius 1.25 ``r_disc``), in
+    units of the median darkness of its core (inside half the radius), is its area in px^2;
+    |det A_inv| takes it to board mm^2.  NaN where the core is empty or the print's outline
+    cuts the disc."""
+    contrast, below, cut = _disc_darkness(gray, c, A_inv, lo, hi, inside_print, sure_inside,
+                                          plane, (0.5 * r_disc) ** 2, (1.25 * r_disc) ** 2)
+    area_px = below / contrast
     return np.where(np.isfinite(contrast) & ~cut,
-                    2 * np.sqrt(area_px * det_inv / math.pi), np.nan)
+                    2 * np.sqrt(area_px * np.abs(np.linalg.det(A_inv)) / math.pi), np.nan)
 
 
-def _medians(values: np.ndarray, groups: np.ndarray, n: int) -> np.ndarray:
-    """The median (as np.median) of ``values`` in each of the ``n`` groups numbered by ``groups``
-    (sorted): (n,), NaN for an empty group.  One sort for all groups, not a call per disc."""
-    order = np.lexsort((values, groups))
-    ranked = values[order]
-    count = np.bincount(groups, minlength=n)
-    start = np.cumsum(count) - count
-    low, high = start + np.maximum(count - 1, 0) // 2, start + count // 2
-    some = count > 0
-    out = np.full(n, np.nan)
-    out[some] = (ranked[low[some]] + ranked[high[some]]) / 2
+def _surely_within(bounds: np.ndarray, box_mm: np.ndarray) -> np.ndarray:
+    """(n,) whether each window's box (half-extents ``box_mm`` (n, 2) mm) lies within its
+    ``bounds`` (n, 4): (x lo, y lo, x hi, y hi) mm, so that every pixel of it does."""
+    return np.all((bounds[:, :2] <= -box_mm) & (box_mm <= bounds[:, 2:]), axis=1)
+
+
+def _normal_equations(sums: np.ndarray):
+    """From ``_window_sums``' (n, 8) sums over a mask (1, x, y, xx, xy, yy, v, vx, vy less the
+    vy: see there): the normal matrix (n, 3, 3) of d = (1, x, y) and the sums of v d (n, 3).
+    A plane p fitted to the values over the mask solves normal p = rhs, and normal p - rhs
+    sums the plane less the values with d."""
+    one, x, y, xx, xy, yy, v, vx, vy = np.moveaxis(sums, -1, 0)
+    normal = np.stack([np.stack([one, x, y], -1), np.stack([x, xx, xy], -1),
+                       np.stack([y, xy, yy], -1)], -2)
+    return normal, np.stack([v, vx, vy], -1)
+
+
+# The per-pixel work, compiled: one pass over each window's pixels, with no window-sized
+# arrays (the vectorised numpy form spent most of a 12 MP circle grid's detection making and
+# reading them).  Each pixel's board offset and masks are computed by the same operations, in
+# the same order, as the definitions in ``_measure_discs``; only the order of the sums differs.
+@numba.njit(cache=True, nogil=True)
+def _in_bounds(bx, by, x_lo, y_lo, x_hi, y_hi, sure):
+    return sure or (x_lo <= bx <= x_hi and y_lo <= by <= y_hi)
+
+
+@numba.njit(cache=True, nogil=True)
+def _window_sums(gray, c, A_inv, lo, hi, inside_print, sure_inside, ring_print, sure_ring,
+                 r_inner2, r_outer2):
+    """(n, 2 [ring, disc], 9) sums over each window's ring and disc pixels of 1, x, y, x^2,
+    xy, y^2 and the grey level v, vx, vy (x, y: offsets from the estimate ``c``), row by row."""
+    out = np.zeros((len(c), 2, 9))
+    row = np.zeros((2, 5))  # a row's sums of 1, x, x^2, v, vx per mask
+    for i in range(len(c)):
+        a00, a01, a10, a11 = A_inv[i, 0, 0], A_inv[i, 0, 1], A_inv[i, 1, 0], A_inv[i, 1, 1]
+        cx, cy = c[i, 0], c[i, 1]
+        # Scalars, not rows of the bounds: a view per pixel costs more than the pixel's work.
+        in_x0, in_y0, in_x1, in_y1 = inside_print[i, 0], inside_print[i, 1], \
+            inside_print[i, 2], inside_print[i, 3]
+        ring_x0, ring_y0, ring_x1, ring_y1 = ring_print[i, 0], ring_print[i, 1], \
+            ring_print[i, 2], ring_print[i, 3]
+        in_sure, ring_sure = sure_inside[i], sure_ring[i]
+        for y in range(lo[i, 1], hi[i, 1]):
+            oy = y - cy
+            row[:] = 0.0
+            for x in range(lo[i, 0], hi[i, 0]):
+                ox = x - cx
+                bx = a00 * ox + a01 * oy
+                by = a10 * ox + a11 * oy
+                r2 = bx * bx + by * by
+                if r2 < r_inner2:
+                    if not _in_bounds(bx, by, in_x0, in_y0, in_x1, in_y1, in_sure):
+                        continue
+                    m = 1
+                elif r2 <= r_outer2 and _in_bounds(bx, by, ring_x0, ring_y0, ring_x1, ring_y1,
+                                                   ring_sure):
+                    m = 0
+                else:
+                    continue
+                v = float(gray[y, x])
+                row[m, 0] += 1.0
+                row[m, 1] += ox
+                row[m, 2] += ox * ox
+                row[m, 3] += v
+                row[m, 4] += v * ox
+            for m in range(2):
+                out[i, m, 0] += row[m, 0]
+                out[i, m, 1] += row[m, 1]
+                out[i, m, 2] += oy * row[m, 0]
+                out[i, m, 3] += row[m, 2]
+                out[i, m, 4] += oy * row[m, 1]
+                out[i, m, 5] += oy * oy * row[m, 0]
+                out[i, m, 6] += row[m, 3]
+                out[i, m, 7] += row[m, 4]
+                out[i, m, 8] += oy * row[m, 3]
     return out
 
 
-def _windows(gray, centres: np.ndarray, reach: np.ndarray, side: int):
-    """Each estimate's window of ``gray``, ``reach`` (n,) px about ``centres`` (n, 2) px and cut
-    to the image, in a stack of equal boxes ``side`` px across (fewer if the image is smaller).
-
-    Returns float64 copies (n, rows, columns), the offsets of the columns (n, columns) and of the
-    rows (n, rows) from each estimate, which pixels belong to the window (n, rows, columns), and
-    its largest offsets (n, 2) px.  One gather from the 8-bit image for all windows.
-    """
-    height, width = gray.shape
-    lo = np.maximum(np.floor(centres - reach[:, None]), 0).astype(int)
-    hi = np.minimum(np.ceil(centres + reach[:, None]) + 1, [width, height]).astype(int)
-    size = np.minimum(side, [width, height])
-    start = np.minimum(lo, [width, height] - size)
-    patch = sliding_window_view(gray, (size[1], size[0]))[start[:, 1], start[:, 0]]
-    x = start[:, :1] + np.arange(size[0])
-    y = start[:, 1:] + np.arange(size[1])
-    valid = (((y >= lo[:, 1:]) & (y < hi[:, 1:]))[:, :, None]
-             & ((x >= lo[:, :1]) & (x < hi[:, :1]))[:, None, :])
-    half = np.maximum(centres - lo, hi - 1 - centres)
-    return patch.astype(float), x - centres[:, :1], y - centres[:, 1:], valid, half
-
-
-def _within(bx, by, lo, hi, box_mm):
-    """Which pixels' board offsets ``bx``, ``by`` (n, rows, columns) mm lie within [lo, hi]
-    (n, 2) mm.  A window whose box (half-extents ``box_mm`` (n, 2)) lies inside, as most do,
-    is inside at every pixel: when all do, no per-pixel test is made."""
-    sure = np.all((lo <= -box_mm) & (box_mm <= hi), axis=1)
-    if sure.all():
-        return np.True_
-    lo, hi = lo[:, :, None, None], hi[:, :, None, None]
-    return sure[:, None, None] | ((bx >= lo[:, 0]) & (bx <= hi[:, 0])
-                                  & (by >= lo[:, 1]) & (by <= hi[:, 1]))
-
-
-def _plane_sums(mask, values, ox, oy):
-    """Over each window's ``mask`` (n, rows, columns): the normal matrix (n, 3, 3), sums of
-    d d^T with d = (1, x, y), and the sums of ``values`` d (n, 3), x and y the offsets of the
-    columns ``ox`` (n, columns) and rows ``oy`` (n, rows).
-
-    A plane p fitted to the values over the mask solves normal p = rhs, and normal p - rhs sums
-    the plane less the values with d.  The sums go along rows against 1, x, x^2, then down the
-    rows against 1, y, y^2: two products, no pixels gathered.
-    """
-    m = mask.astype(float)
-    xs = np.stack([np.ones_like(ox), ox, ox * ox], -1)
-    ys = np.stack([np.ones_like(oy), oy, oy * oy], -1)
-    s = np.einsum("nrk,nrj->nkj", ys, m @ xs)  # s[k, j]: sum of y^k x^j
-    v = np.einsum("nrk,nrj->nkj", ys[..., :2], (m * values) @ xs[..., :2])
-    power_y, power_x = np.array([0, 0, 1]), np.array([0, 1, 0])  # of d's entries
-    normal = s[:, power_y[:, None] + power_y, power_x[:, None] + power_x]
-    return normal, v[:, power_y, power_x]
+@numba.njit(cache=True, nogil=True)
+def _disc_darkness(gray, c, A_inv, lo, hi, inside_print, sure_inside, plane, r_core2,
+                   r_inner2):
+    """Per window: the median darkness (plane - v) of the core (r^2 < ``r_core2``, inside the
+    print; NaN if empty), the darkness summed over the whole disc (r^2 < ``r_inner2``, in the
+    image), and whether the print's outline cuts that disc."""
+    n = len(c)
+    contrast, below, cut = np.full(n, np.nan), np.zeros(n), np.zeros(n, np.bool_)
+    for i in range(n):
+        a00, a01, a10, a11 = A_inv[i, 0, 0], A_inv[i, 0, 1], A_inv[i, 1, 0], A_inv[i, 1, 1]
+        cx, cy = c[i, 0], c[i, 1]
+        p0, p1, p2 = plane[i, 0], plane[i, 1], plane[i, 2]
+        in_x0, in_y0, in_x1, in_y1 = inside_print[i, 0], inside_print[i, 1], \
+            inside_print[i, 2], inside_print[i, 3]
+        in_sure = sure_inside[i]
+        core = np.empty((hi[i, 1] - lo[i, 1]) * (hi[i, 0] - lo[i, 0]))
+        k = 0
+        for y in range(lo[i, 1], hi[i, 1]):
+            oy = y - cy
+            for x in range(lo[i, 0], hi[i, 0]):
+                ox = x - cx
+                bx = a00 * ox + a01 * oy
+                by = a10 * ox + a11 * oy
+                r2 = bx * bx + by * by
+                if r2 >= r_inner2:
+                    continue
+                weight = p0 + p1 * ox + p2 * oy - float(gray[y, x])
+                below[i] += weight
+                if not _in_bounds(bx, by, in_x0, in_y0, in_x1, in_y1, in_sure):
+                    cut[i] = True
+                elif r2 < r_core2:
+                    core[k] = weight
+                    k += 1
+        if k:
+            ranked = np.sort(core[:k])
+            contrast[i] = (ranked[(k - 1) // 2] + ranked[k // 2]) / 2
+    return contrast, below, cut

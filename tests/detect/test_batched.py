@@ -35,8 +35,9 @@ def warped(pattern, px_per_mm):
 
 
 def disc_one_by_one(gray, centre, A, r_disc, r_outer, room, edge_lo, edge_hi, iterations=3):
-    """One disc's darkness centroid as ``_measure_discs`` defines it, on a meshgrid of its
-    window with lstsq on the ring's pixels (for a disc well inside the image)."""
+    """One disc's darkness centroid and diameter (mm) as ``_measure_discs`` defines them, on a
+    meshgrid of its window with lstsq on the ring's pixels (for a disc well inside the image
+    and the print)."""
     A_inv, r_inner = np.linalg.inv(A), 1.25 * r_disc
     reach = r_outer * np.linalg.norm(A, 2)
     for _ in range(iterations):
@@ -53,28 +54,29 @@ def disc_one_by_one(gray, centre, A, r_disc, r_outer, room, edge_lo, edge_hi, it
         plane = np.linalg.lstsq(design, values[ring], rcond=None)[0]
         weight = plane[0] + offset[disc] @ plane[1:] - values[disc]
         centre = centre + weight @ offset[disc] / weight.sum()
-    return centre
+    # The last window's: its darkness over the disc in units of the core's median darkness.
+    core = (radius2 < (0.5 * r_disc) ** 2) & np.all(np.abs(board) <= room, -1)
+    darkness = plane[0] + offset @ plane[1:] - values
+    area_px = darkness[radius2 < r_inner**2].sum() / np.median(darkness[core])
+    return centre, 2 * math.sqrt(area_px * abs(np.linalg.det(A_inv)) / math.pi)
 
 
 @pytest.mark.parametrize("pattern", [SymmetricCircles(), AsymmetricCircles()])
-def test_discs_measured_together_equal_discs_measured_one_by_one(pattern, monkeypatch):
+def test_discs_measured_together_equal_discs_measured_one_by_one(pattern):
     gray, _ = warped(pattern, 1.8)
     points, affines = _find_circle_grid(_SearchImage.of(gray), pattern)
     centres, diameters = discs._measure_discs(gray, points, affines, pattern, pattern.diameter_mm)
     assert np.isfinite(centres).all() and np.isfinite(diameters).all()
-    # Every disc in a batch of its own (windows of their own size): the same numbers.
-    monkeypatch.setattr(discs, "_BATCH_PX", 1)
-    alone = discs._measure_discs(gray, points, affines, pattern, pattern.diameter_mm)
-    assert np.abs(alone[0] - centres).max() < BOUND_PX and np.abs(alone[1] - diameters).max() < 1e-9
     object_xy = pattern.object_points()[:, :2]
     lo, hi = pattern.outline_mm()[0], pattern.outline_mm()[2]
     for i, A in enumerate(affines):
         guard = discs.DISC_GUARD_PX * np.linalg.norm(np.linalg.inv(A), axis=1)
-        reference = disc_one_by_one(
+        reference, diameter = disc_one_by_one(
             gray, points[i], A, pattern.diameter_mm / 2, 0.5 * nearest_mm(object_xy),
             np.minimum(object_xy[i] - lo, hi - object_xy[i]) - guard,
             lo + guard - object_xy[i], hi - guard - object_xy[i])
         assert np.abs(centres[i] - reference).max() < BOUND_PX, i
+        assert abs(diameters[i] - diameter) < 1e-9, i
 
 
 def saddle_step_one_by_one(gradient, q, A_inv, lim, box_lo, box_hi, band_mm):
