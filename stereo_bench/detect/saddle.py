@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 
 import cv2
+import numba
 import numpy as np
 
 
@@ -211,13 +212,13 @@ def refine_saddles(gray, points: np.ndarray, object_xy: np.ndarray, square_mm: f
     half = np.einsum("mij,mj->mi", np.abs(A[fits]), lim)  # px half-extents of the bounding box
     start = points[seen]
     q, steps, ok = start.copy(), np.zeros(len(seen), int), np.zeros(len(seen), bool)
-    # All corners iterate together, on a stack of gradient patches that hold each one's window
+    # All corners iterate together, on a stack of blurred patches that hold each one's window
     # with _SADDLE_MARGIN px to spare; a corner whose window moves out gets a new patch and goes on.
     pending = np.arange(len(seen))
     while len(pending):
         origin = np.floor(q[pending] - half[pending]).astype(int) - _SADDLE_MARGIN
         size = int((np.ceil(q[pending] + half[pending]) + 1 - origin).max()) + _SADDLE_MARGIN
-        moments = _gradient_moments(gray, origin, size, sigma)
+        blurred = _blurred_patches(gray, origin, size, sigma)
         live = np.arange(len(pending))  # rows of the stack still iterating on it
         moved_out = []
         while len(live):
@@ -230,7 +231,7 @@ def refine_saddles(gray, points: np.ndarray, object_xy: np.ndarray, square_mm: f
             live, c, box_lo, box_hi = (a[~failed & ~out] for a in (live, c, box_lo, box_hi))
             if not len(live):
                 break
-            shift, solvable = _saddle_steps(moments, live, origin[live], q[c], A_inv[c],
+            shift, solvable = _saddle_steps(blurred, live, origin[live], q[c], A_inv[c],
                                             lim[c], box_lo, box_hi, band_mm, (width, height))
             q[c[solvable]] += shift[solvable]
             steps[c] += 1
@@ -242,16 +243,11 @@ def refine_saddles(gray, points: np.ndarray, object_xy: np.ndarray, square_mm: f
     return refined
 
 
-def _gradient_moments(gray, origin: np.ndarray, size: int, sigma: float) -> np.ndarray:
-    """Per pixel of the squares of ``size`` px whose top-left pixels are ``origin`` (M, 2) (x, y):
-    (M, 5, size * size) float64 [gx gx, gx gy, gy gy, gx (gx x + gy y), gy (gx x + gy y)], with
-    (gx, gy) the gradient (central differences) of ``gray`` blurred with ``sigma`` and (x, y)
-    the pixel relative to the square's top-left; zero where it would need pixels off the image.
-
-    Every sum of the saddle fit is a weighted sum of these, so an iteration is one product with
-    the weights: the gradients are computed once however often the window moves.  Each moment
-    is a contiguous plane (interleaving the five cost more than computing them).
-    """
+def _blurred_patches(gray, origin: np.ndarray, size: int, sigma: float) -> np.ndarray:
+    """(M, size + 2, size + 2) float64: ``gray`` blurred with ``sigma`` over the squares of
+    ``size`` px whose top-left pixels are ``origin`` (M, 2) (x, y), with one pixel more on every
+    side for the gradient's central differences; zero off the image.  Blurred once however
+    often the window moves within its square."""
     blurred = np.zeros((len(origin), size + 2, size + 2))
     for k, (x, y) in enumerate(origin):
         box = _blurred_box(gray, x - 1, y - 1, x + size + 1, y + size + 1, sigma)
@@ -259,58 +255,28 @@ def _gradient_moments(gray, origin: np.ndarray, size: int, sigma: float) -> np.n
             patch, (bx, by) = box
             blurred[k, by - y + 1:by - y + 1 + patch.shape[0],
                     bx - x + 1:bx - x + 1 + patch.shape[1]] = patch
-    gx = 0.5 * (blurred[:, 1:-1, 2:] - blurred[:, 1:-1, :-2])
-    gy = 0.5 * (blurred[:, 2:, 1:-1] - blurred[:, :-2, 1:-1])
-    xs = np.arange(size)
-    g_dot_p = gx * xs + gy * xs[:, None]
-    moments = np.empty((len(origin), 5, size, size))
-    for k, (a, b) in enumerate([(gx, gx), (gx, gy), (gy, gy), (gx, g_dot_p), (gy, g_dot_p)]):
-        np.multiply(a, b, out=moments[:, k])
-    return moments.reshape(len(origin), 5, size * size)
+    return blurred
 
 
-def _saddle_steps(moments, rows, origin, q, A_inv, lim, box_lo, box_hi, band_mm, image_size):
+def _saddle_steps(blurred, rows, origin, q, A_inv, lim, box_lo, box_hi, band_mm, image_size):
     """One step of the saddle fit for M corners at once: shifts (M, 2) px and whether each
     corner's normal matrix was well enough conditioned to solve (M,) bool.
 
-    ``moments`` (K, 5, S * S): ``_gradient_moments``, of which the M ``rows`` are the corners'
-    squares, with top-left pixels ``origin`` (M, 2); ``q`` (M, 2) the current estimates;
-    ``A_inv`` (M, 2, 2) px -> board mm; ``lim`` (M, 2) the window's half-extents in mm;
-    ``box_lo``, ``box_hi`` (M, 2) its bounding box (end exclusive) in px.
+    ``blurred`` (K, S + 2, S + 2): ``_blurred_patches``, of which the M ``rows`` are the
+    corners' squares, with top-left pixels ``origin`` (M, 2); ``q`` (M, 2) the current
+    estimates; ``A_inv`` (M, 2, 2) px -> board mm; ``lim`` (M, 2) the window's half-extents in
+    mm; ``box_lo``, ``box_hi`` (M, 2) its bounding box (end exclusive) in px, inside the square.
     """
-    size = math.isqrt(moments.shape[2])
     width, height = image_size
-    pixels = origin[:, :, None] + np.arange(size)  # (M, 2, S): x then y coordinates
-    dx, dy = pixels[:, 0] - q[:, :1], pixels[:, 1] - q[:, 1:]  # (M, S) offsets from q
     # Only pixels whose mirror image through q is in the image too: a window cut by the image
     # border stays point-symmetric, as the saddle is.
     mirrored = np.minimum(q, [width - 1, height - 1] - q)
-    in_x = ((pixels[:, 0] >= box_lo[:, :1]) & (pixels[:, 0] < box_hi[:, :1])
-            & (np.abs(dx) <= mirrored[:, :1]))
-    in_y = ((pixels[:, 1] >= box_lo[:, 1:]) & (pixels[:, 1] < box_hi[:, 1:])
-            & (np.abs(dy) <= mirrored[:, 1:]))
-    use = in_x[:, None, :] & in_y[:, :, None]  # (M, S rows of y, S columns of x)
-    # The weight's phases, pi/2 at the window's sides: theta = pi/2 (A_inv p) / lim is a sum of
-    # a term in x and one in y, so cos(theta) is a product of (M, S, 2) [cos, -sin] of the y
-    # terms with (M, 2, S) [cos, sin] of the x terms: one pass over the window per axis.
+    # The weight's phases, pi/2 at the window's sides: theta = pi/2 (A_inv p) / lim.
     scale = 0.5 * np.pi * A_inv / lim[:, :, None]
-    cosines = []
-    near_edges = np.zeros(use.shape, bool)  # within band_mm of either edge line
-    for axis in range(2):
-        tx, ty = scale[:, axis, :1] * dx, scale[:, axis, 1:] * dy
-        use &= _phase_within(tx, ty, 0.5 * np.pi)
-        if band_mm is not None:
-            near_edges |= _phase_within(tx, ty, 0.5 * np.pi * band_mm / lim[:, axis, None])
-        cosines.append(np.stack([np.cos(ty), -np.sin(ty)], -1) @ np.stack([np.cos(tx),
-                                                                             np.sin(tx)], 1))
-    if band_mm is not None:
-        use &= near_edges
-    w = cosines[0]
-    w *= cosines[1]
-    w *= w
-    w *= use
-    # Row by row: gathering the corners' rows of the stack would copy it at every step.
-    sums = np.stack([moments[r] @ w_r for r, w_r in zip(rows, w.reshape(len(q), -1))])
+    band = (np.full(lim.shape, -1.0) if band_mm is None  # no band: every pixel is near
+            else 0.5 * np.pi * band_mm / lim)
+    sums = _saddle_sums(blurred, rows, origin, q, scale, mirrored, box_lo, box_hi, band,
+                        band_mm is not None)
     normal = sums[:, [0, 1, 1, 2]].reshape(-1, 2, 2)
     # sum w g g^T (p - q), the pixel p relative to the square's top-left.
     rhs = sums[:, 3:] - (normal @ (q - origin)[:, :, None])[..., 0]
@@ -320,9 +286,66 @@ def _saddle_steps(moments, rows, origin, q, A_inv, lim, box_lo, box_hi, band_mm,
     return shift, solvable
 
 
-def _phase_within(tx: np.ndarray, ty: np.ndarray, bound) -> np.ndarray:
-    """(M, S rows, S columns) bool: |tx (M, S) of the column + ty (M, S) of the row| <= bound
-    (a number or (M, 1)), by two comparisons against the row's limits rather than forming the
-    sum over the window."""
-    tx = tx[:, None, :]
-    return (tx <= (bound - ty)[:, :, None]) & (tx >= (-bound - ty)[:, :, None])
+# The fit's per-pixel work, compiled: one pass over each window per step, with no window-sized
+# arrays (in numpy, the gradient moments and the weights over every window cost most of a
+# 12 MP checkerboard's detection).  Each pixel's gradient, phases, masks and weight are
+# computed as defined below, term by term; the sums are taken in pixel order.
+@numba.njit(cache=True, nogil=True)
+def _saddle_sums(blurred, rows, origin, q, scale, mirrored, box_lo, box_hi, band, banded):
+    """(M, 5) sums over each window of w [gx gx, gx gy, gy gy, gx (gx x + gy y),
+    gy (gx x + gy y)]: (gx, gy) the central differences of the corner's blurred square, (x, y)
+    the pixel relative to its top-left, w = (cos theta_u cos theta_v)^2 with
+    theta_a = tx_a + ty_a, tx_a = scale[a, 0] (x - q_x) and ty_a = scale[a, 1] (y - q_y) (cos
+    of the sum as cos ty cos tx - sin ty sin tx, the row's and the column's factors); pixels
+    with |theta_a| > pi/2, or whose mirror through q is off the image, have no weight, nor with
+    ``banded`` those where neither |theta_a| is within ``band[a]`` (near neither edge line)."""
+    half_pi = 0.5 * np.pi
+    out = np.zeros((len(q), 5))
+    for j in range(len(q)):
+        patch = blurred[rows[j]]
+        x0, y0, x1, y1 = box_lo[j, 0], box_lo[j, 1], box_hi[j, 0], box_hi[j, 1]
+        qx, qy = q[j, 0], q[j, 1]
+        mx, my = mirrored[j, 0], mirrored[j, 1]
+        s00, s01, s10, s11 = scale[j, 0, 0], scale[j, 0, 1], scale[j, 1, 0], scale[j, 1, 1]
+        band0, band1 = band[j, 0], band[j, 1]
+        # The columns' phases and their cosines and sines, once per step.
+        tx0, tx1 = np.empty(x1 - x0), np.empty(x1 - x0)
+        c0, n0, c1, n1 = np.empty(x1 - x0), np.empty(x1 - x0), np.empty(x1 - x0), \
+            np.empty(x1 - x0)
+        for x in range(x0, x1):
+            dx = x - qx
+            tx0[x - x0], tx1[x - x0] = s00 * dx, s10 * dx
+            c0[x - x0], n0[x - x0] = math.cos(s00 * dx), math.sin(s00 * dx)
+            c1[x - x0], n1[x - x0] = math.cos(s10 * dx), math.sin(s10 * dx)
+        g00 = g01 = g11 = g0p = g1p = 0.0
+        for y in range(y0, y1):
+            dy = y - qy
+            if not abs(dy) <= my:
+                continue
+            ty0, ty1 = s01 * dy, s11 * dy
+            cy0, ny0, cy1, ny1 = math.cos(ty0), -math.sin(ty0), math.cos(ty1), -math.sin(ty1)
+            py = y - origin[j, 1]
+            for x in range(x0, x1):
+                if not abs(x - qx) <= mx:
+                    continue
+                k = x - x0
+                a, b = tx0[k], tx1[k]
+                if not (a <= half_pi - ty0 and a >= -half_pi - ty0
+                        and b <= half_pi - ty1 and b >= -half_pi - ty1):
+                    continue
+                if banded and not ((a <= band0 - ty0 and a >= -band0 - ty0)
+                                   or (b <= band1 - ty1 and b >= -band1 - ty1)):
+                    continue
+                w = (cy0 * c0[k] + ny0 * n0[k]) * (cy1 * c1[k] + ny1 * n1[k])
+                w *= w
+                px = x - origin[j, 0]
+                gx = 0.5 * (patch[py + 1, px + 2] - patch[py + 1, px])
+                gy = 0.5 * (patch[py + 2, px + 1] - patch[py, px + 1])
+                gp = gx * px + gy * py
+                g00 += w * (gx * gx)
+                g01 += w * (gx * gy)
+                g11 += w * (gy * gy)
+                g0p += w * (gx * gp)
+                g1p += w * (gy * gp)
+        out[j, 0], out[j, 1], out[j, 2], out[j, 3], out[j, 4] = g00, g01, g11, g0p, g1p
+    return out

@@ -14,7 +14,7 @@ import pytest
 from stereo_bench.core.patterns import AsymmetricCircles, Checkerboard, SymmetricCircles
 from stereo_bench.detect import discs
 from stereo_bench.detect.boards import _find_circle_grid, _SearchImage
-from stereo_bench.detect.saddle import (_gradient_moments, _saddle_steps, local_affines,
+from stereo_bench.detect.saddle import (_blurred_patches, _saddle_steps, local_affines,
                                         nearest_mm)
 
 BOUND_PX = 1e-6
@@ -113,7 +113,7 @@ def test_saddle_steps_of_all_corners_equal_one_corner_at_a_time(band_mm):
     origin = box_lo - 3
     size = int((box_hi - origin).max()) + 3
     # The corners' rows of a stack that holds them in reverse order after one other square.
-    stack = _gradient_moments(gray, np.concatenate([origin[:1], origin[::-1]]), size, sigma)
+    stack = _blurred_patches(gray, np.concatenate([origin[:1], origin[::-1]]), size, sigma)
     rows = np.arange(len(origin), 0, -1)
     shift, solvable = _saddle_steps(stack, rows, origin, start, np.linalg.inv(A), lim, box_lo,
                                     box_hi, band_mm, (640, 480))
