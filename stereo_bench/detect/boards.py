@@ -20,6 +20,9 @@ from .saddle import drop_grid_outliers, local_affines, nearest_mm, refine_saddle
 SEARCH_MAX_SIDE = 1600
 
 
+SEARCH_BLUR_PX = 1.0  # sigma of the blur of a reduced checkerboard or circle grid search copy
+
+
 CHARUCO_MIN_SEARCH_SIDE = 1920  # markers of small images are searched on an enlarged copy
 
 
@@ -113,7 +116,19 @@ def detect(image: np.ndarray, pattern: Pattern, method: str | None = None) -> De
 
 
 def _search_image(gray, pattern: Pattern) -> "_SearchImage":
-    return _SearchImage.of(gray, CHARUCO_MIN_SEARCH_SIDE if pattern.kind == "charuco" else 0)
+    if pattern.kind == "charuco":
+        return _SearchImage.of(gray, CHARUCO_MIN_SEARCH_SIDE)
+    search = _SearchImage.of(gray)
+    # Sensor noise survives the reduction (4096 -> 1600 px divides its sigma by only 2.56) and
+    # fills findChessboardCorners' quads and the blob detector's thresholds with specks that cost
+    # most of their time: with the copy blurred, detection of 8 noisy 12 MP frames went from 70
+    # to 33 ms a frame (checkerboard) and from 121 to 75 ms (circle grids).  Every point is then
+    # measured on the full image, so only where that starts moves: by at most 7.6e-6 px on clean
+    # frames and 3.5e-3 px on noisy ones, the mean error against the truth unchanged in its
+    # fourth decimal (16 noisy frames per board).
+    if search.downscaled:
+        return _SearchImage(cv2.GaussianBlur(search.image, (0, 0), SEARCH_BLUR_PX), search.scale)
+    return search
 
 
 def _detect_in(gray, search: "_SearchImage", pattern: Pattern, method: str) -> Detection:
@@ -292,7 +307,7 @@ def measure_disc_diameter(images, pattern: SymmetricCircles | AsymmetricCircles)
             raise ValueError(f"measure_disc_diameter: image {k}: expected an 8-bit (H, W) or "
                              f"(H, W, 3) image, got {image.dtype} {image.shape}")
         gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-        found = _find_circle_grid(_SearchImage.of(gray), pattern)
+        found = _find_circle_grid(_search_image(gray, pattern), pattern)
         if not isinstance(found, str):
             diameters.append(measured_discs(gray, *found, pattern)[1])
     measured = np.concatenate(diameters) if diameters else np.array([])
