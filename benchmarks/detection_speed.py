@@ -188,6 +188,10 @@ def measure(dataset: Dataset, camera: str, kind: str, detectors: dict, baseline:
     pattern, n = dataset.pattern, len(dataset.pattern.ids())
     points = {name: np.full((dataset.frames, n, 2), np.nan) for name in detectors}
     seconds = dict.fromkeys(detectors, 0.0)
+    # One untimed detection each first: a process's one-off costs (loading the compiled
+    # measurement kernels, OpenCV's first calls) are not a frame's.
+    for run in detectors.values():
+        run(dataset.image(0, 0), pattern)
     for f in range(dataset.frames):
         gray = dataset.image(0, f)
         if gray.ndim == 3:

@@ -51,6 +51,12 @@ then measured on the full image: the saddle fit for checkerboard corners (SB's i
 copy was shrunk); for ChArUco the markers found on the copy, scaled back, go to CharucoDetector, which
 interpolates the corners on the full image before the saddle fit; circle centres are always
 re-measured at full resolution (a centroid needs only a window, which the scaled-back estimate
-places to well under a pixel).
+places to well under a pixel).  A shrunk checkerboard or circle grid copy is blurred by 1 px
+first: sensor noise would otherwise fill the search with specks and double its time.  A ChArUco
+board not found as described costs one more marker search, for any marker of the dictionary in
+either polarity, printed or mirrored; only when that finds one are the other polarity and the
+mirror image searched (a studio camera sees no board in most frames).  The per-pixel work of
+both measurements (each saddle-fit step, each disc window) is compiled with numba: a single pass
+over each window's pixels.
 
 """
