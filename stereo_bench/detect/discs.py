@@ -168,6 +168,14 @@ def _normal_equations(sums: np.ndarray):
 # reading them).  Each pixel's board offset and masks are computed by the same operations, in
 # the same order, as the definitions in ``_measure_discs``; only the order of the sums differs.
 @numba.njit(cache=True, nogil=True)
+def _to_board(a00, a01, a10, a11, ox, oy):
+    """A pixel's offset (ox, oy) px from the estimate in board mm through A_inv, and r^2."""
+    bx = a00 * ox + a01 * oy
+    by = a10 * ox + a11 * oy
+    return bx, by, bx * bx + by * by
+
+
+@numba.njit(cache=True, nogil=True)
 def _in_bounds(bx, by, x_lo, y_lo, x_hi, y_hi, sure):
     return sure or (x_lo <= bx <= x_hi and y_lo <= by <= y_hi)
 
@@ -193,9 +201,7 @@ def _window_sums(gray, c, A_inv, lo, hi, inside_print, sure_inside, ring_print, 
             row[:] = 0.0
             for x in range(lo[i, 0], hi[i, 0]):
                 ox = x - cx
-                bx = a00 * ox + a01 * oy
-                by = a10 * ox + a11 * oy
-                r2 = bx * bx + by * by
+                bx, by, r2 = _to_board(a00, a01, a10, a11, ox, oy)
                 if r2 < r_inner2:
                     if not _in_bounds(bx, by, in_x0, in_y0, in_x1, in_y1, in_sure):
                         continue
@@ -245,9 +251,7 @@ def _disc_darkness(gray, c, A_inv, lo, hi, inside_print, sure_inside, plane, r_c
             oy = y - cy
             for x in range(lo[i, 0], hi[i, 0]):
                 ox = x - cx
-                bx = a00 * ox + a01 * oy
-                by = a10 * ox + a11 * oy
-                r2 = bx * bx + by * by
+                bx, by, r2 = _to_board(a00, a01, a10, a11, ox, oy)
                 if r2 >= r_inner2:
                     continue
                 weight = p0 + p1 * ox + p2 * oy - float(gray[y, x])
