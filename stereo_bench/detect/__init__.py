@@ -55,7 +55,9 @@ places to well under a pixel).  A shrunk checkerboard or circle grid copy is blu
 first: sensor noise would otherwise fill the search with specks and double its time.  A ChArUco
 board not found as described costs one more marker search, for any marker of the dictionary in
 either polarity, printed or mirrored; only when that finds one are the other polarity and the
-mirror image searched (a studio camera sees no board in most frames).  The per-pixel work of
+mirror image searched (a studio camera sees no board in most frames).  Where the camera's
+previous frame had no board, that search goes first: when it finds no marker, neither would
+the first search, so such a frame costs one marker search.  The per-pixel work of
 both measurements (each saddle-fit step, each disc window) is compiled with numba: a single pass
 over each window's pixels.
 

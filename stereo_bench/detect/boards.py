@@ -29,6 +29,9 @@ CHARUCO_MIN_SEARCH_SIDE = 1920  # markers of small images are searched on an enl
 MIN_CHARUCO_CORNERS = 6
 
 
+NO_MARKER = "no ArUco marker of the board was found"
+
+
 CHARUCO_SIGMA = 0.8
 
 
@@ -74,10 +77,13 @@ def resolve_method(pattern: Pattern, method: str | None) -> str:
     return method
 
 
-def detect(image: np.ndarray, pattern: Pattern, method: str | None = None) -> Detection:
+def detect(image: np.ndarray, pattern: Pattern, method: str | None = None,
+           in_view: bool = True) -> Detection:
     """Detect ``pattern`` in an 8-bit grayscale (H, W) or BGR (H, W, 3) image.
 
     A board that is not found gives ``found=False`` with the reason; bad input raises ValueError.
+    ``in_view``: whether the board is likely in the image (it was in the camera's previous
+    frame); it orders a ChArUco board's searches (see below), not what they find.
     """
     method = resolve_method(pattern, method)
     image = np.asarray(image)
@@ -90,14 +96,21 @@ def detect(image: np.ndarray, pattern: Pattern, method: str | None = None) -> De
     # polarity (an inverted board nobody said was inverted; a print seen against the light).
     first = 255 - gray if pattern.inverted else gray
     search = _search_image(first, pattern)
-    found = _detect_in(first, search, pattern, method)
-    if found.found:
-        return found
     # The three other ChArUco searches (other polarity, mirrored) cost three marker searches
     # each time the board is out of view, as it is in most of a studio's frames: one marker
     # search for every marker of either polarity, as printed or mirrored, tells first whether
-    # any of them can find something.
-    if pattern.kind == "charuco" and not _any_marker_seen(search.image, pattern):
+    # any of them can find something. It finds a marker wherever the first search does (the
+    # same candidates, the plain ids first), so where the board is likely out of view it goes
+    # first: when it finds none, neither would the first search.
+    gate = pattern.kind == "charuco"
+    if gate and not in_view:
+        if not _any_marker_seen(search.image, pattern):
+            return failed_detection(pattern, NO_MARKER)
+        gate = False  # passed
+    found = _detect_in(first, search, pattern, method)
+    if found.found:
+        return found
+    if gate and not _any_marker_seen(search.image, pattern):
         return found
     other = _detect_in(255 - first, _search_image(255 - first, pattern), pattern, method)
     if other.found or pattern.kind != "charuco":
@@ -360,7 +373,7 @@ def _detect_charuco(gray, search: _SearchImage, pattern: Charuco) -> Detection:
     aruco = cv2.aruco.ArucoDetector(board.getDictionary(), cv2.aruco.DetectorParameters())
     markers, marker_ids, _ = aruco.detectMarkers(search.image)
     if marker_ids is None or len(marker_ids) == 0:
-        return failed_detection(pattern, "no ArUco marker of the board was found")
+        return failed_detection(pattern, NO_MARKER)
     markers = tuple(search.to_full(m).astype(np.float32) for m in markers)
     # A two-sided board: one side faces the camera; its marker ids tell which.
     side = pattern

@@ -75,7 +75,9 @@ class DatasetDetections:
         try:
             if isinstance(image, Exception):
                 raise image
-            det = detect(image, self.pattern, self.method)
+            previous = self._frames.get((camera, frame - 1))
+            det = detect(image, self.pattern, self.method,
+                         in_view=previous is None or previous.found)
         except (OSError, ValueError) as e:  # FileNotFoundError is an OSError
             det = failed_detection(self.pattern, str(e))
         self._frames[camera, frame] = det

@@ -221,6 +221,12 @@ def test_one_marker_search_tells_whether_a_charuco_board_is_in_view():
     for seen in (image, 255 - image, image[:, ::-1], 255 - image[:, ::-1]):
         assert _any_marker_seen(np.ascontiguousarray(seen), board)
     assert not _any_marker_seen(view(Checkerboard(), px_per_mm, 1.0), board)
+    # Looked for first (a board likely out of view), it changes the order, not the result.
+    for seen in (image, 255 - image[:, ::-1], view(Checkerboard(), px_per_mm, 1.0)):
+        seen = np.ascontiguousarray(seen)
+        first, later = detect(seen, board, in_view=False), detect(seen, board)
+        assert (first.found, first.error) == (later.found, later.error)
+        np.testing.assert_array_equal(first.points, later.points)
 
 
 @pytest.mark.parametrize("px_per_mm, sigma", SCALES)
