@@ -52,7 +52,10 @@ def as_rig_of(estimate: list[Camera], names: list[str], source: str) -> tuple[li
         raise ValueError(f"{source}: cameras {[c.name for c in estimate]} cannot be matched to "
                          f"{names} (expected the same names, or as many cameras in the same "
                          f"order)")
-    return (rebased(chosen) if len(chosen) > 1 else chosen), how
+    try:
+        return (rebased(chosen) if len(chosen) > 1 else chosen), how
+    except ValueError as e:  # a pose the file holds but no rotation matrix keeps finite
+        raise ValueError(f"{source}: {e}") from None
 
 
 def _rig_file_cameras(path: Path) -> list[Camera] | str:

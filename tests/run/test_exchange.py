@@ -78,3 +78,16 @@ def test_export_of_a_missing_source_creates_nothing(tmp_path, capsys):
     assert main(["export", str(missing), "--format", "kalibr"]) == 2
     assert "neither a run directory" in capsys.readouterr().err
     assert not missing.exists()
+
+
+def test_a_pose_no_rotation_keeps_finite_is_refused_naming_the_file():
+    """A rotation vector a file may hold (finite) but whose rotation overflows: the refusal
+    names the file, as every other refusal of an imported calibration does."""
+    from stereo_bench.core.camera import Camera
+    from stereo_bench.run.exchange import as_rig_of
+
+    left = Camera("left", 100, 80, 100.0, 100.0, 50.0, 40.0, rvec=np.array([0.0, -1e308, 0.0]))
+    right = Camera("right", 100, 80, 100.0, 100.0, 50.0, 40.0)
+    with pytest.raises(ValueError, match=r"^/calib/camera-0-left\.cameramodel: camera 'left'"), \
+            np.errstate(all="ignore"):
+        as_rig_of([left, right], ["left", "right"], "/calib/camera-0-left.cameramodel")

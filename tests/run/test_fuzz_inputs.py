@@ -128,10 +128,12 @@ def mutated_rig(rng: random.Random) -> bytes:
         kind = rng.random()
         leaves = [p for p in _leaves(d) if p]
         try:
+            # Copies: a later mutation writes inside a dict or list set here, and the shared
+            # value would carry that write into later cases (even into itself: a cycle).
             if kind < 0.45:
-                _set(d, rng.choice(leaves), rng.choice(NASTY + PLAUSIBLE))
+                _set(d, rng.choice(leaves), copy.deepcopy(rng.choice(NASTY + PLAUSIBLE)))
             elif kind < 0.75:
-                _set(d, rng.choice(EXTRA_KEYS), rng.choice(NASTY + PLAUSIBLE))
+                _set(d, rng.choice(EXTRA_KEYS), copy.deepcopy(rng.choice(NASTY + PLAUSIBLE)))
             elif kind < 0.85:
                 _delete(d, rng.choice(leaves))
             elif kind < 0.92:
