@@ -102,15 +102,13 @@ def detect(image: np.ndarray, pattern: Pattern, method: str | None = None,
     # any of them can find something. It finds a marker wherever the first search does (the
     # same candidates, the plain ids first), so where the board is likely out of view it goes
     # first: when it finds none, neither would the first search.
-    gate = pattern.kind == "charuco"
-    if gate and not in_view:
-        if not _any_marker_seen(search.image, pattern):
-            return failed_detection(pattern, NO_MARKER)
-        gate = False  # passed
+    charuco = pattern.kind == "charuco"
+    if charuco and not in_view and not _any_marker_seen(search.image, pattern):
+        return failed_detection(pattern, NO_MARKER)
     found = _detect_in(first, search, pattern, method)
     if found.found:
         return found
-    if gate and not _any_marker_seen(search.image, pattern):
+    if charuco and in_view and not _any_marker_seen(search.image, pattern):
         return found
     other = _detect_in(255 - first, _search_image(255 - first, pattern), pattern, method)
     if other.found or pattern.kind != "charuco":

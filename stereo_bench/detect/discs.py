@@ -109,9 +109,9 @@ def _measure_all(gray, centres, A_inv, stretch, room, edges, r_disc: float, r_ou
         box_mm = np.einsum("nij,nj->ni", np.abs(A_inv[live]),
                            np.maximum(c - lo, hi - 1 - c))
         inside_print = np.concatenate([-room[live], room[live]], 1)
+        sure_inside = _surely_within(inside_print, box_mm)
         ring_print = edges[live].reshape(-1, 4)
-        sums = _window_sums(gray, c, A_inv[live], lo, hi, inside_print,
-                            _surely_within(inside_print, box_mm), ring_print,
+        sums = _window_sums(gray, c, A_inv[live], lo, hi, inside_print, sure_inside, ring_print,
                             _surely_within(ring_print, box_mm), r_inner**2, r_outer**2)
         ring_normal, ring_rhs = _normal_equations(sums[:, 0])
         disc_normal, disc_rhs = _normal_equations(sums[:, 1])
@@ -126,8 +126,7 @@ def _measure_all(gray, centres, A_inv, stretch, room, edges, r_disc: float, r_ou
         centres[live] = c[good] + dark[:, 1:] / dark[:, :1]
         if k == iterations - 1:
             diameters[live] = _diameters(gray, c[good], A_inv[live], lo[good], hi[good],
-                                         inside_print[good], _surely_within(
-                                             inside_print[good], box_mm[good]),
+                                         inside_print[good], sure_inside[good],
                                          plane[..., 0], r_disc)
     diameters[~np.isfinite(centres).all(axis=1)] = np.nan
     return centres, diameters
@@ -153,8 +152,8 @@ def _surely_within(bounds: np.ndarray, box_mm: np.ndarray) -> np.ndarray:
 
 
 def _normal_equations(sums: np.ndarray):
-    """From ``_window_sums``' (n, 8) sums over a mask (1, x, y, xx, xy, yy, v, vx, vy less the
-    vy: see there): the normal matrix (n, 3, 3) of d = (1, x, y) and the sums of v d (n, 3).
+    """From ``_window_sums``' (n, 9) sums over a mask (1, x, y, xx, xy, yy, v, vx, vy): the
+    normal matrix (n, 3, 3) of d = (1, x, y) and the sums of v d (n, 3).
     A plane p fitted to the values over the mask solves normal p = rhs, and normal p - rhs
     sums the plane less the values with d."""
     one, x, y, xx, xy, yy, v, vx, vy = np.moveaxis(sums, -1, 0)

@@ -273,10 +273,9 @@ def _saddle_steps(blurred, rows, origin, q, A_inv, lim, box_lo, box_hi, band_mm,
     mirrored = np.minimum(q, [width - 1, height - 1] - q)
     # The weight's phases, pi/2 at the window's sides: theta = pi/2 (A_inv p) / lim.
     scale = 0.5 * np.pi * A_inv / lim[:, :, None]
-    band = (np.full(lim.shape, -1.0) if band_mm is None  # no band: every pixel is near
+    band = (np.full(lim.shape, np.inf) if band_mm is None  # no band: every pixel is near
             else 0.5 * np.pi * band_mm / lim)
-    sums = _saddle_sums(blurred, rows, origin, q, scale, mirrored, box_lo, box_hi, band,
-                        band_mm is not None)
+    sums = _saddle_sums(blurred, rows, origin, q, scale, mirrored, box_lo, box_hi, band)
     normal = sums[:, [0, 1, 1, 2]].reshape(-1, 2, 2)
     # sum w g g^T (p - q), the pixel p relative to the square's top-left.
     rhs = sums[:, 3:] - (normal @ (q - origin)[:, :, None])[..., 0]
@@ -291,14 +290,14 @@ def _saddle_steps(blurred, rows, origin, q, A_inv, lim, box_lo, box_hi, band_mm,
 # 12 MP checkerboard's detection).  Each pixel's gradient, phases, masks and weight are
 # computed as defined below, term by term; the sums are taken in pixel order.
 @numba.njit(cache=True, nogil=True)
-def _saddle_sums(blurred, rows, origin, q, scale, mirrored, box_lo, box_hi, band, banded):
+def _saddle_sums(blurred, rows, origin, q, scale, mirrored, box_lo, box_hi, band):
     """(M, 5) sums over each window of w [gx gx, gx gy, gy gy, gx (gx x + gy y),
     gy (gx x + gy y)]: (gx, gy) the central differences of the corner's blurred square, (x, y)
     the pixel relative to its top-left, w = (cos theta_u cos theta_v)^2 with
     theta_a = tx_a + ty_a, tx_a = scale[a, 0] (x - q_x) and ty_a = scale[a, 1] (y - q_y) (cos
     of the sum as cos ty cos tx - sin ty sin tx, the row's and the column's factors); pixels
-    with |theta_a| > pi/2, or whose mirror through q is off the image, have no weight, nor with
-    ``banded`` those where neither |theta_a| is within ``band[a]`` (near neither edge line)."""
+    with |theta_a| > pi/2, or whose mirror through q is off the image, have no weight, nor
+    those where neither |theta_a| is within ``band[a]`` (near neither edge line; inf: no band)."""
     half_pi = 0.5 * np.pi
     out = np.zeros((len(q), 5))
     for j in range(len(q)):
@@ -308,15 +307,17 @@ def _saddle_sums(blurred, rows, origin, q, scale, mirrored, box_lo, box_hi, band
         mx, my = mirrored[j, 0], mirrored[j, 1]
         s00, s01, s10, s11 = scale[j, 0, 0], scale[j, 0, 1], scale[j, 1, 0], scale[j, 1, 1]
         band0, band1 = band[j, 0], band[j, 1]
-        # The columns' phases and their cosines and sines, once per step.
+        # The columns' phases, their cosines and sines and the mirror rule, once per step.
         tx0, tx1 = np.empty(x1 - x0), np.empty(x1 - x0)
         c0, n0, c1, n1 = np.empty(x1 - x0), np.empty(x1 - x0), np.empty(x1 - x0), \
             np.empty(x1 - x0)
-        for x in range(x0, x1):
-            dx = x - qx
-            tx0[x - x0], tx1[x - x0] = s00 * dx, s10 * dx
-            c0[x - x0], n0[x - x0] = math.cos(s00 * dx), math.sin(s00 * dx)
-            c1[x - x0], n1[x - x0] = math.cos(s10 * dx), math.sin(s10 * dx)
+        mirror_x = np.empty(x1 - x0, np.bool_)
+        for k in range(x1 - x0):
+            dx = x0 + k - qx
+            tx0[k], tx1[k] = s00 * dx, s10 * dx
+            c0[k], n0[k] = math.cos(tx0[k]), math.sin(tx0[k])
+            c1[k], n1[k] = math.cos(tx1[k]), math.sin(tx1[k])
+            mirror_x[k] = abs(dx) <= mx
         g00 = g01 = g11 = g0p = g1p = 0.0
         for y in range(y0, y1):
             dy = y - qy
@@ -326,15 +327,15 @@ def _saddle_sums(blurred, rows, origin, q, scale, mirrored, box_lo, box_hi, band
             cy0, ny0, cy1, ny1 = math.cos(ty0), -math.sin(ty0), math.cos(ty1), -math.sin(ty1)
             py = y - origin[j, 1]
             for x in range(x0, x1):
-                if not abs(x - qx) <= mx:
-                    continue
                 k = x - x0
+                if not mirror_x[k]:
+                    continue
                 a, b = tx0[k], tx1[k]
                 if not (a <= half_pi - ty0 and a >= -half_pi - ty0
                         and b <= half_pi - ty1 and b >= -half_pi - ty1):
                     continue
-                if banded and not ((a <= band0 - ty0 and a >= -band0 - ty0)
-                                   or (b <= band1 - ty1 and b >= -band1 - ty1)):
+                if not ((a <= band0 - ty0 and a >= -band0 - ty0)
+                        or (b <= band1 - ty1 and b >= -band1 - ty1)):
                     continue
                 w = (cy0 * c0[k] + ny0 * n0[k]) * (cy1 * c1[k] + ny1 * n1[k])
                 w *= w
