@@ -11,6 +11,8 @@ per-camera precomputation (PixelRays) is timed separately. OpenCV's speed depend
 
 Every environment preset is timed beside the clean render of the same frames (the imaging
 model: defocus, motion blur, the photon sensor, JPEG, vignetting, light and the board as made).
+Each frame's PNG encoding (the dataset's record) is timed beside OpenCV's encoder, with the
+files' mean sizes.
 
     python benchmarks/render_speed.py [--stride 2] [--supersampling 2 4] [--environments ...]
 """
@@ -30,6 +32,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from stereo_bench.config.schema import load_rig, parse_rig  # noqa: E402
+from stereo_bench.core.files import encode_png  # noqa: E402
 from stereo_bench.scene.dataset import render_settings  # noqa: E402
 from stereo_bench.config.environments import PRESETS  # noqa: E402
 from stereo_bench.render import AnalyticRenderer, PixelRays  # noqa: E402
@@ -66,7 +69,8 @@ def main() -> None:
               f"{len(frames)} frames of {rig.pattern.kind}; clean aim < {aim * 1e3:.0f} "
               f"ms/frame, the imaging model's aim at most 3x clean")
         print(f"  {'s':>2} {'environment':<19} {'CPU ms/frame mean [min..max]':>30} "
-              f"{'wall ms/frame':>14} {'x clean':>8}")
+              f"{'wall ms/frame':>14} {'x clean':>8} {'PNG ms':>8} {'OpenCV':>8} "
+              f"{'MB':>7} {'OpenCV':>7}")
         for s in args.supersampling:
             clean_ms = None
             for env in args.environments:
@@ -76,14 +80,23 @@ def main() -> None:
                 renderer = AnalyticRenderer(cam, rig.pattern, settings, rays)
                 omega, v = rig.board_velocity(cam, settings.motion.speed_mm_s)
                 rng = np.random.default_rng(0)
-                times = np.array([timed(lambda: renderer.render(R[f], t[f], rng,
-                                                                (omega[f], v[f])))[1:]
-                                  for f in frames])
+                times, png = [], []
+                for f in frames:
+                    image, cpu, wall = timed(lambda: renderer.render(R[f], t[f], rng,
+                                                                     (omega[f], v[f])))
+                    times.append((cpu, wall))
+                    ours, ours_s, _ = timed(lambda: encode_png(image))
+                    theirs, theirs_s, _ = timed(lambda: cv2.imencode(".png", image)[1])
+                    png.append((ours_s, theirs_s, len(ours), theirs.size))
+                times, png = np.array(times), np.array(png)
                 cpu_ms, wall_ms = 1e3 * times[:, 0], 1e3 * times[:, 1]
                 clean_ms = clean_ms or (cpu_ms.mean() if env == "clean" else None)
-                ratio = f"{cpu_ms.mean() / clean_ms:8.1f}" if clean_ms else ""
+                ratio = f"{cpu_ms.mean() / clean_ms:8.1f}" if clean_ms else " " * 8
+                ours_ms, cv_ms = 1e3 * png[:, 0].mean(), 1e3 * png[:, 1].mean()
+                ours_mb, cv_mb = png[:, 2].mean() / 1e6, png[:, 3].mean() / 1e6
                 print(f"  {s:>2} {env:<19} {cpu_ms.mean():>12.1f} [{cpu_ms.min():6.1f}.."
-                      f"{cpu_ms.max():6.1f}] {wall_ms.mean():>14.1f} {ratio}")
+                      f"{cpu_ms.max():6.1f}] {wall_ms.mean():>14.1f} {ratio} "
+                      f"{ours_ms:8.1f} {cv_ms:8.1f} {ours_mb:7.2f} {cv_mb:7.2f}")
 
 
 if __name__ == "__main__":

@@ -55,7 +55,7 @@ from ..core.poses import rodrigues_to_matrix, view_toward
 from .imaging import (MAX_MOTION_SUBFRAMES, Light, Motion, Optics, Sensor, blinn_phong, defocus,
                       record, sensor_response, vignetting_map)
 from .texels import (OUTSIDE, cells_touching, gaussian_noise, inverse_2x2, linear_interpolation,
-                     offset_texels, plane_texels, sample_texels, time_area_offsets)
+                     noisy_levels, offset_texels, plane_texels, sample_texels, time_area_offsets)
 
 _PAD = 2           # background texels around every texture (also absorbs perspectiveTransform's
                    # (0, 0) answer for rays parallel to the plane)
@@ -736,9 +736,7 @@ class AnalyticRenderer:
                 canvas[box] = cv2.GaussianBlur(canvas[box], (0, 0), st.optics.blur_px,
                                                borderType=cv2.BORDER_REPLICATE)
             if st.sensor.noise_sigma > 0:
-                noise = gaussian_noise(rng, canvas.shape)
-                return cv2.addWeighted(canvas, 1 / 256, noise, st.sensor.noise_sigma, 0,
-                                       dtype=cv2.CV_8U)
+                return noisy_levels(rng, canvas, st.sensor.noise_sigma)
             return cv2.convertScaleAbs(canvas, alpha=1 / 256)
         # Outside the board's box the image is the uniform background, which defocus and blur
         # leave unchanged: only the box is filtered and exposed per frame, the background's

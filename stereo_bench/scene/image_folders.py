@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.patterns import Pattern
-from ..core.files import is_safe_name, read_grey
+from ..core.files import encode_png, is_safe_name, read_grey
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v")
@@ -175,7 +175,7 @@ def video_frames(name: str, path: Path, wanted) -> list[VideoFrame]:
                 ok, image = capture.retrieve()
                 if ok:
                     grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-                    frames.append(VideoFrame(path, index, cv2.imencode(".png", grey)[1].tobytes()))
+                    frames.append(VideoFrame(path, index, encode_png(grey)))
             index += 1
     finally:
         capture.release()

@@ -89,9 +89,8 @@ def _serve(conn) -> None:
 
 
 def _render(config: dict, camera: int, frame: int, rays_cache) -> tuple[bytes, dict]:
-    import cv2
-
     from ..config.schema import parse_rig
+    from ..core.files import encode_png
     from ..scene.dataset import frame_rng, render_settings
     from ..render import AnalyticRenderer, PixelRays
     from ..scene.rig import Rig
@@ -109,8 +108,5 @@ def _render(config: dict, camera: int, frame: int, rays_cache) -> tuple[bytes, d
     R, t = rig.cam_from_board(cam)
     image = renderer.render(R[frame], t[frame], frame_rng(cfg.seed, camera, frame))
     visible = int(rig.ground_truth().visible[camera, frame].sum())
-    ok, png = cv2.imencode(".png", image)
-    if not ok:
-        raise ValueError(f"preview: camera {camera}, frame {frame} could not be encoded as PNG")
-    return png.tobytes(), {"X-Visible-Points": str(visible), "X-Camera": cam.name,
+    return encode_png(image), {"X-Visible-Points": str(visible), "X-Camera": cam.name,
                            "X-Frames": str(len(rig.trajectory))}

@@ -492,3 +492,20 @@ def test_the_board_as_made_is_exact_between_its_grid_nodes(rays):
         err_px = np.linalg.norm(interpolated - exact, axis=-1)[inside].max() / texels_per_px
         print(f"warp {warp} mm: interpolated texel map off by at most {err_px:.5f} px")
         assert inside.mean() > 0.5 and err_px < 0.008
+
+
+@pytest.mark.parametrize("sigma", [0.5, 2.0, 6.0, 32.0])
+def test_noisy_levels_equal_opencvs_weighted_sum_of_the_same_draws(sigma):
+    """The compiled integer path of additive noise gives, pixel for pixel, OpenCV's float32
+    weighted sum (rounded half to even, saturated) of the same draws, and leaves the rng where
+    the noise image would."""
+    from stereo_bench.render import gaussian_noise
+    from stereo_bench.render.texels import noisy_levels
+    canvas = np.random.default_rng(9).integers(0, 1 << 16, (480, 640)).astype(np.uint16)
+    canvas[:8] = 0  # black and white rows, where the noise saturates
+    canvas[8:16] = 0xFFFF
+    a, b = np.random.default_rng(4), np.random.default_rng(4)
+    expected = cv2.addWeighted(canvas, 1 / 256, gaussian_noise(a, canvas.shape), sigma, 0,
+                               dtype=cv2.CV_8U)
+    assert np.array_equal(noisy_levels(b, canvas, sigma), expected)
+    assert a.integers(1 << 30) == b.integers(1 << 30)
