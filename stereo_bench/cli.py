@@ -116,16 +116,24 @@ def _nothing_calibrated(trials: list[dict]) -> bool:
                for entry in cams.values())
 
 
-def _run(cfg, out: Path, args, source, first_dataset=None, with_rig=True) -> list[dict]:
-    from .run.pipeline import run
+def _workers(args):
+    """The command's worker processes (``run.workers.Workers``), started at their first job."""
+    from .run.workers import Workers
 
-    methods = _methods(args.methods)
     if not 1 <= args.trials <= MAX_TRIALS or not 1 <= args.workers <= MAX_WORKERS:
         raise ValueError(f"--trials: expected 1..{MAX_TRIALS}; --workers: expected "
                          f"1..{MAX_WORKERS}; got {args.trials} and {args.workers}")
+    return Workers(args.workers)
+
+
+def _run(cfg, out: Path, args, source, workers, first_dataset=None,
+         with_rig=True) -> list[dict]:
+    from .run.pipeline import run
+
+    methods = _methods(args.methods)
     with progress_bar() as bar:
         task = bar.add_task(f"{cfg.name}: trials", total=args.trials)
-        return _named(source, run, cfg, out, methods, args.trials, args.workers,
+        return _named(source, run, cfg, out, methods, args.trials, workers,
                       lambda d, n: bar.update(task, completed=d, total=n), first_dataset,
                       with_rig)
 
@@ -150,8 +158,9 @@ def cmd_calibrate(args) -> int:
                      "calibration": {"intrinsics_views": args.intrinsics_views}},
                     f"--intrinsics-views {args.intrinsics_views} for {args.dataset}")
     out = Path(args.out or Path(args.dataset) / "calibration")
-    with locked(out):
-        trials = _run(cfg, out, args, args.dataset, first_dataset=base.root, with_rig=False)
+    with locked(out), _workers(args) as workers:
+        trials = _run(cfg, out, args, args.dataset, workers, first_dataset=base.root,
+                      with_rig=False)
         agg = _report(trials, out, run_title(base.config))
         write_run_html(out, run_title(base.config), trials, agg, [], cfg)
     return _finish(trials, f"{out}/results.json, report.md, report.html; estimates in "
@@ -164,10 +173,12 @@ def cmd_run(args) -> int:
 
     cfg = _renderable(load_rig(args.rig))
     out = Path(args.out or Path("out") / cfg.name)
-    with locked(out):  # the whole command: trials, report and plots come from one run
-        trials = _run(cfg, out, args, args.rig)
+    # The whole command holds the lock (trials, report and plots come from one run) and
+    # shares its worker processes between the stages and the plots.
+    with locked(out), _workers(args) as workers:
+        trials = _run(cfg, out, args, args.rig, workers)
         agg = _report(trials, out, run_title(cfg))
-        plots = plot_run(out, trials, agg)
+        plots = plot_run(out, trials, agg, workers)
         write_run_html(out, run_title(cfg), trials, agg, plots, cfg)
     return _finish(trials, f"{out}/results.json, {out}/report.md, {out}/report.html and "
                            f"{len(plots)} plots in {out}/plots")

@@ -243,9 +243,10 @@ def plot_studio(trial: TrialPaths, ds: Dataset, path: Path) -> Path:
 
 
 def plot_projection_maps(trial: TrialPaths, ds: Dataset, methods: list[str],
-                         folder: Path) -> list[Path]:
+                         folder: Path, cameras: list[Camera]) -> list[Path]:
+    """``projection_difference_<camera>.png`` for each of ``cameras`` (the dataset's)."""
     paths = []
-    for cam in ds.cameras:
+    for cam in cameras:
         truth = cam.with_params(rvec=np.zeros(3), tvec=np.zeros(3))
         ests = {m: trial.calibration(m, cam.name) for m in methods}
         ests = {m: Camera.load_json(p) for m, p in ests.items() if p.is_file()}
@@ -288,11 +289,13 @@ def plot_projection_maps(trial: TrialPaths, ds: Dataset, methods: list[str],
     return paths
 
 
-def plot_views(trial: TrialPaths, ds: Dataset, methods: list[str], folder: Path) -> list[Path]:
+def plot_views(trial: TrialPaths, ds: Dataset, methods: list[str], folder: Path,
+               cameras: list[Camera]) -> list[Path]:
     """``views_<camera>.png``: the capture figure (``plot_capture_camera``: RPE per view with
     the outlier views in red, residual vectors over the image, coverage, projection
     uncertainty) for each camera's estimate by ``opencv`` (else the first method that
-    calibrated it), from the trial's saved detections and views."""
+    calibrated it), from the trial's saved detections and views; for each of ``cameras`` (the
+    dataset's)."""
     from ..calibrate import get_calibrator
     from ..calibrate.base import CalibrationResult
     from ..calibrate.diagnostics import coverage, view_outliers
@@ -300,7 +303,7 @@ def plot_views(trial: TrialPaths, ds: Dataset, methods: list[str], folder: Path)
     from ..calibrate.uncertainty import projection_uncertainty
 
     paths = []
-    for cam in ds.cameras:
+    for cam in cameras:
         done = [m for m in methods if trial.calibration(m, cam.name).is_file()]
         if not done:
             continue
@@ -330,24 +333,49 @@ def plot_views(trial: TrialPaths, ds: Dataset, methods: list[str], folder: Path)
     return paths
 
 
-def plot_run(out: Path, trials: list[dict], agg: dict) -> list[Path]:
-    """Every plot of a run; the per-trial ones use the first trial."""
+def plot_run(out: Path, trials: list[dict], agg: dict, workers=1) -> list[Path]:
+    """Every plot of a run; the per-trial ones use the first trial. The figures are independent:
+    with ``workers`` (a count, or the command's ``run.workers.Workers``) they are drawn that
+    many at a time (matplotlib draws one figure at a time in a process)."""
+    from ..run.workers import in_processes
+
+    first = trials[0]
+    ds = _first_dataset(Path(out), first)
+    figures = [("metrics", None), ("residuals", None), ("trajectory", None),
+               *([("studio", None)] if ds.config.trajectory.kind == "session" else []),
+               *[("projection", c.name) for c in ds.cameras],
+               *[("views", c.name) for c in ds.cameras]]
+    jobs = [(str(out), first, agg, figure, camera) for figure, camera in figures]
+    return [path for paths in in_processes(_plot_job, jobs, workers) for path in paths]
+
+
+def _first_dataset(out: Path, first: dict) -> Dataset:
+    # The run's own copy, so that a run directory moved elsewhere still plots.
+    own = RunPaths(out).trial(first["seed"]).dataset
+    return Dataset.load(own.root if own.manifest.is_file() else first["dataset"])
+
+
+def _plot_job(args) -> list[Path]:
+    """One figure of ``plot_run`` (for ``camera``, the per-camera ones)."""
+    out, first, agg, figure, camera = args
     folder = Path(out) / "plots"
     folder.mkdir(parents=True, exist_ok=True)
-    first = trials[0]
     trial = RunPaths(Path(out)).trial(first["seed"])
-    # The run's own copy, so that a run directory moved elsewhere still plots.
-    own = trial.dataset
-    ds = Dataset.load(own.root if own.manifest.is_file() else first["dataset"])
+    ds = _first_dataset(Path(out), first)
     methods = first["methods"]
-    return [plot_metrics(agg, folder / "metrics.png"),
-            plot_residuals(trial, ds, methods, folder / "residuals.png"),
-            plot_trajectory(ds.rig(), folder / "trajectory.png",
-                            ds.config.trajectory.kind == "session"),
-            *([plot_studio(trial, ds, folder / "studio.png")]
-              if ds.config.trajectory.kind == "session" else []),
-            *plot_projection_maps(trial, ds, methods, folder),
-            *plot_views(trial, ds, methods, folder)]
+    if figure == "metrics":
+        return [plot_metrics(agg, folder / "metrics.png")]
+    if figure == "residuals":
+        return [plot_residuals(trial, ds, methods, folder / "residuals.png")]
+    if figure == "trajectory":
+        return [plot_trajectory(ds.rig(), folder / "trajectory.png",
+                                ds.config.trajectory.kind == "session")]
+    if figure == "studio":
+        return [plot_studio(trial, ds, folder / "studio.png")]
+    cameras = [c for c in ds.cameras if c.name == camera]
+    if figure == "projection":
+        return plot_projection_maps(trial, ds, methods, folder, cameras)
+    return plot_views(trial, ds, methods, folder, cameras)
 
 
 def primary_method(results: dict, camera: str) -> str | None:

@@ -268,7 +268,7 @@ def rig_fingerprint(metrics_fp: str, method: str, settings: dict | None = None) 
 
 
 def dataset_of(cfg: RigConfig, trial: TrialPaths, dataset_dir: Path | None, progress,
-               notes: Notes, workers: int = 1) -> tuple[Dataset, DatasetDetections | None]:
+               notes: Notes, workers=1) -> tuple[Dataset, DatasetDetections | None]:
     """The trial's dataset: an existing one (``dataset_dir``), or the trial's own, reused when
     it was rendered from this configuration and rendered again otherwise (its cameras
     ``workers`` at a time); with the detections of its images when it was rendered here (each
@@ -291,11 +291,12 @@ def dataset_of(cfg: RigConfig, trial: TrialPaths, dataset_dir: Path | None, prog
 
 
 def run_trial(cfg: RigConfig, out: Path, methods: list[str], progress=None,
-              dataset_dir: Path | None = None, with_rig: bool = True, workers: int = 1) -> dict:
+              dataset_dir: Path | None = None, with_rig: bool = True, workers=1) -> dict:
     """One trial (one seed): every stage, each reused when its marker matches (module docstring).
 
     ``dataset_dir``: an existing dataset to use instead of rendering into the trial directory.
-    ``workers``: processes that render and detect the cameras (``write_dataset``).
+    ``workers`` (a count, or the command's ``workers.Workers``): processes that render and
+    detect the cameras (``write_dataset``) and make the methods' rigs.
     The returned report (the trial's metrics.json plus ``rig``, ``timing`` and ``notes``) says in
     ``notes`` which stages were redone and why, and carries the dataset's warnings.
     """
@@ -309,31 +310,45 @@ def run_trial(cfg: RigConfig, out: Path, methods: list[str], progress=None,
                                   detected)
     report["rig"] = {}
     if with_rig and len(ds.cameras) >= 2:
+        settings = rig_settings(cfg.calibration)
+        todo = {}
         for m in methods:
-            settings = rig_settings(cfg.calibration)
             rig_fp = rig_fingerprint(report["fingerprint"], m, settings)
             entry = reusable(trial.rig(m), rig_fp, notes, f"rig calibration of {m}")
             if entry is not None:
                 report["rig"][m] = entry
-                continue
-            failed = [e["error"] for e in report["calibration"][m].values() if "error" in e]
-            t0 = time.perf_counter()
-            try:
-                if failed:
-                    raise ValueError(f"a camera's calibration failed: {failed[0]}")
-                entry = strict(rig_calibration(ds, trial, m, cfg.calibration))
-            except (ValueError, np.linalg.LinAlgError, RuntimeError, OSError) as e:
-                entry = {"method": m, "error": f"{type(e).__name__}: {e}"}
-            entry["fingerprint"] = rig_fp
-            entry["settings"] = settings
-            entry["wall_time_s"] = time.perf_counter() - t0
-            write_json(trial.rig(m), with_outputs(entry, trial.rig(m)))
-            report["rig"][m] = strict(entry)
+            else:
+                failed = [e["error"] for e in report["calibration"][m].values() if "error" in e]
+                todo[m] = (str(ds.root), str(out), cfg.seed, m,
+                           cfg.calibration.model_dump(mode="json"), failed, rig_fp, settings)
+        # The methods' rigs are independent: with workers they are made side by side.
+        made = dict(zip(todo, in_processes(_rig_job, list(todo.values()), workers)))
+        for m in methods:  # the report in the methods' order, reused or made
+            if m in made:
+                write_json(trial.rig(m), with_outputs(made[m], trial.rig(m)))
+                report["rig"][m] = strict(made[m])
     # Stage times as measured when each stage ran (reused stages keep their original times).
     report["timing"] = {"render_s": ds.render_time_s, **report["timing"],
                         "rig_s": sum(e["wall_time_s"] for e in report["rig"].values())}
     report["notes"] = notes.items
     return strict(report)
+
+
+def _rig_job(args) -> dict:
+    """One method's rig calibration (``run_trial``): its entry, or the error that ended it."""
+    root, out, seed, method, calibration, failed, rig_fp, settings = args
+    t0 = time.perf_counter()
+    try:
+        if failed:
+            raise ValueError(f"a camera's calibration failed: {failed[0]}")
+        entry = strict(rig_calibration(Dataset.load(root), RunPaths(Path(out)).trial(seed),
+                                       method, CalibrationConfig.model_validate(calibration)))
+    except (ValueError, np.linalg.LinAlgError, RuntimeError, OSError) as e:
+        entry = {"method": method, "error": f"{type(e).__name__}: {e}"}
+    entry["fingerprint"] = rig_fp
+    entry["settings"] = settings
+    entry["wall_time_s"] = time.perf_counter() - t0
+    return entry
 
 
 def _run_trial_job(args):
@@ -342,12 +357,12 @@ def _run_trial_job(args):
                      dataset_dir=dataset_dir, with_rig=with_rig, workers=workers)
 
 
-def run(cfg: RigConfig, out: Path, methods: list[str], trials: int = 1, workers: int = 1,
+def run(cfg: RigConfig, out: Path, methods: list[str], trials: int = 1, workers=1,
         progress=None, first_dataset: Path | None = None, with_rig: bool = True) -> list[dict]:
-    """All trials (seeds cfg.seed, cfg.seed + 1, ...); with workers > 1 in spawned processes
-    that end with this one (``workers.process_pool``), or for one trial, its cameras rendered
-    and detected ``workers`` at a time. Holds the run directory's lock throughout
-    (RunLockedError if another run holds it).
+    """All trials (seeds cfg.seed, cfg.seed + 1, ...); with ``workers`` (a count, or the
+    command's ``workers.Workers``) > 1 in spawned processes that end with this one, or for one
+    trial, its stages' jobs (cameras, rigs) that many at a time. Holds the run directory's
+    lock throughout (RunLockedError if another run holds it).
 
     ``first_dataset``: an existing dataset of ``cfg`` used as the first trial.
     """

@@ -26,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import struct
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -162,14 +163,38 @@ def _camera_job(args) -> tuple[float, object]:
     return seconds, detections
 
 
+def _render_cameras(cfg: RigConfig, rig: Rig, paths: DatasetPaths, detections, workers,
+                    progress) -> float:
+    """Every camera's frames into ``paths`` (``write_dataset``); the seconds they took."""
+    from ..run.workers import in_processes, worker_count  # how this package starts processes
+
+    frames = len(rig.trajectory)
+    total = len(rig.cameras) * frames
+    if worker_count(workers) > 1 and len(rig.cameras) > 1 and cfg.renderer.kind == "analytic":
+        jobs = [(cfg.model_dump(mode="json"), str(paths.root), c, detections)
+                for c in range(len(rig.cameras))]
+        done = in_processes(_camera_job, jobs, workers,
+                            progress and (lambda n, _: progress(n * frames, total)))
+        if detections is not None:
+            for _, found in done:
+                detections.merge(found)
+        return sum(seconds for seconds, _ in done)
+    ticks = iter(range(1, total + 1))
+    with _renderers(cfg, paths) as make_renderer:
+        return sum(_render_camera(cfg, rig, c, paths, make_renderer, detections,
+                                  progress and (lambda: progress(next(ticks), total)))
+                   for c in range(len(rig.cameras)))
+
+
 def write_dataset(cfg: RigConfig, out: Path, progress=None, detections=None,
-                  workers: int = 1) -> "Dataset":
+                  workers=1) -> "Dataset":
     """Render every camera and frame of ``cfg`` into ``out`` and write the ground truth.
 
     ``detections``: a ``detect.dataset.DatasetDetections`` given each image as it is made (a
     stage that needs the pixels takes them here rather than reading the files back); its time
-    is its own, not the dataset's render time. ``workers`` > 1: the cameras are rendered (and
-    detected) that many at a time in spawned processes; the Blender backend renders in its one
+    is its own, not the dataset's render time. ``workers`` (a count, or the command's
+    ``run.workers.Workers``) > 1: the cameras are rendered (and detected) that many at a time in
+    spawned processes; the Blender backend renders in its one
     worker, camera after camera. The images are the same either way (each frame's noise has
     its own generator, ``frame_rng``).
 
@@ -199,25 +224,13 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None, detections=None,
             f"rig {cfg.name!r}: no camera would see the board: " + "; ".join(warnings)
             + " (fields: cameras.*.fx/fy/position_mm/look_at_mm, trajectory.depth_mm)")
     paths.manifest.unlink(missing_ok=True)
-    frames = len(rig.trajectory)
-    total = len(rig.cameras) * frames
-    if workers > 1 and len(rig.cameras) > 1 and cfg.renderer.kind == "analytic":
-        from ..run.workers import in_processes  # the one way this package starts processes
-
-        jobs = [(cfg.model_dump(mode="json"), str(out), c, detections)
-                for c in range(len(rig.cameras))]
-        done = in_processes(_camera_job, jobs, workers,
-                            progress and (lambda n, _: progress(n * frames, total)))
-        render_s = sum(seconds for seconds, _ in done)
-        if detections is not None:
-            for _, found in done:
-                detections.merge(found)
-    else:
-        ticks = iter(range(1, total + 1))
-        with _renderers(cfg, paths) as make_renderer:
-            render_s = sum(_render_camera(cfg, rig, c, paths, make_renderer, detections,
-                                          progress and (lambda: progress(next(ticks), total)))
-                           for c in range(len(rig.cameras)))
+    with ThreadPoolExecutor(1) as side:
+        # The board's picture is made while the cameras render (a studio's board is 45 MP,
+        # 1.3 s, which would otherwise follow the cameras' processes).
+        texture = side.submit(lambda: write_png(paths.texture,
+                                                rig.pattern.texture(TEXTURE_PX_PER_MM)))
+        render_s = _render_cameras(cfg, rig, paths, detections, workers, progress)
+        texture.result()
 
     cams = rig.cameras
     arrays = {
@@ -236,7 +249,6 @@ def write_dataset(cfg: RigConfig, out: Path, progress=None, detections=None,
     }
     for name, a in arrays.items():
         write_npy(paths.array(name), a)
-    write_png(paths.texture, rig.pattern.texture(TEXTURE_PX_PER_MM))
     # The calibration settings are not part of the rendered data (a run may change them and
     # reuse the images): the dataset leaves them out, and the stages that use them record them.
     resolved = cfg.model_dump(mode="json", exclude={"calibration"})
