@@ -107,56 +107,82 @@ def nearest_mm(object_xy: np.ndarray) -> float:
 
 
 # ----------------------------------------------------------------------------- saddle points
-def _blurred_box(gray, x0: int, y0: int, x1: int, y1: int, sigma: float):
-    """``gray`` blurred with ``sigma`` px (float32) over the box [x0, x1) x [y0, y1) cut to the
-    image, and the cut box's top-left pixel (x, y); None if the box misses the image.
+class _Blurred:
+    """``gray`` blurred with ``sigma`` px (float32) over the boxes a fit asks for (``box``).
 
-    The copy blurred carries the kernel's reach of context on every side inside the image, so the
-    values are those of the whole image blurred (both reflect at the image's own border): blurring
-    a few windows costs little where the whole 4096 x 3072 frame cost more than the fit itself.
+    Each box is blurred alone with the kernel's reach of context on every side inside the
+    image, so its values are those of the whole image blurred (both reflect at the image's own
+    border), to float32 rounding (2 ulp, tests/detect/test_batched.py): blurring a few boxes costs
+    little where the whole 4096 x 3072 frame cost more than the fit itself.  A box blurred alone
+    costs about ``BOX_COST_PX`` pixels of a whole blur (the call's own overhead), so where the
+    ``boxes`` expected would cost more than the whole image (a 640 x 480 frame) the whole image
+    is blurred once and the boxes are cut from it.
     """
-    height, width = gray.shape
-    bx0, by0, bx1, by1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
-    if bx1 <= bx0 or by1 <= by0:
-        return None
-    context = math.ceil(4 * sigma) + 1  # OpenCV's float kernel reaches round(4 sigma) px
-    sx0, sy0 = max(bx0 - context, 0), max(by0 - context, 0)
-    sx1, sy1 = min(bx1 + context, width), min(by1 + context, height)
-    blurred = cv2.GaussianBlur(gray[sy0:sy1, sx0:sx1].astype(np.float32), (0, 0), sigma)
-    return blurred[by0 - sy0:by1 - sy0, bx0 - sx0:bx1 - sx0], (bx0, by0)
+
+    BOX_COST_PX = 10_000
+
+    def __init__(self, gray, sigma: float, boxes: int):
+        self.gray, self.sigma = gray, sigma
+        self.whole = (cv2.GaussianBlur(gray.astype(np.float32), (0, 0), sigma)
+                      if gray.size <= boxes * self.BOX_COST_PX else None)
+
+    def box(self, x0: int, y0: int, x1: int, y1: int):
+        """The blurred box [x0, x1) x [y0, y1) cut to the image, and the cut box's top-left
+        pixel (x, y); None if the box misses the image."""
+        height, width = self.gray.shape
+        bx0, by0, bx1, by1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+        if bx1 <= bx0 or by1 <= by0:
+            return None
+        if self.whole is not None:
+            return self.whole[by0:by1, bx0:bx1], (bx0, by0)
+        context = math.ceil(4 * self.sigma) + 1  # OpenCV's float kernel reaches round(4 sigma)
+        sx0, sy0 = max(bx0 - context, 0), max(by0 - context, 0)
+        sx1, sy1 = min(bx1 + context, width), min(by1 + context, height)
+        blurred = cv2.GaussianBlur(self.gray[sy0:sy1, sx0:sx1].astype(np.float32), (0, 0),
+                                   self.sigma)
+        return blurred[by0 - sy0:by1 - sy0, bx0 - sx0:bx1 - sx0], (bx0, by0)
 
 
-def _print_extent(gray, q, A, axis, sign, square_mm, perp_mm, sigma, samples: int = 40) -> float:
-    """How far (board mm, up to one square) the print visibly goes on from corner ``q`` (px)
-    along grid axis ``axis`` (0: x, 1: y) in direction ``sign``, seen in ``gray`` blurred with
-    ``sigma``.
+def _print_extents(blurred: _Blurred, q, A, axis, sign, square_mm, perp_mm,
+                   samples: int = 40) -> np.ndarray:
+    """How far (board mm, up to one square) the print visibly goes on from corners ``q`` (n, 2)
+    px along grid axis ``axis`` (n,) (0: x, 1: y) in direction ``sign`` (n,) (+-1), each through
+    its local board -> image map ``A`` (n, 2, 2), seen in the image ``blurred``.
 
     Beyond an edge corner lie the two outer squares on either side of the grid line through it,
     one black and one white as long as the print goes on.  Their grey levels are sampled (bilinear)
     at ``perp_mm`` on either side of that line, from 0.15 square (clear of the other line's blur)
     out to one square; the print ends where their contrast falls below half its value near the
     corner (beyond it both samples see the same surround, or the same occluder).  Samples off the
-    image are NaN, which ends the print there.
+    image are NaN, which ends the print there.  Each corner's samples are read from its own
+    blurred box; the rest is done for all corners at once.
     """
     t = np.linspace(0.15, 1.0, samples)
-    e = np.eye(2)
-    along = q + (sign * t[:, None] * square_mm * e[axis]) @ A.T
-    side = perp_mm * e[1 - axis] @ A.T
-    xy = np.concatenate([along + side, along - side])
-    lo, hi = np.floor(xy.min(0)).astype(int) - 1, np.ceil(xy.max(0)).astype(int) + 2
-    box = _blurred_box(gray, lo[0], lo[1], hi[0], hi[1], sigma)
-    if box is None:
-        return 0.0
-    patch, origin = box
-    xy = (xy - origin).astype(np.float32)
-    values = cv2.remap(patch, xy[:, :1], xy[:, 1:], cv2.INTER_LINEAR,
-                       borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan).ravel()
-    contrast = np.abs(values[:samples] - values[samples:])
-    reference = np.median(contrast[t <= 0.3])
-    if not reference > 0:
-        return 0.0
-    ends = np.flatnonzero(~(contrast >= 0.5 * reference))
-    return square_mm if len(ends) == 0 else float(t[ends[0]]) * square_mm
+    n = len(q)
+    rows = np.arange(n)
+    step = (sign[:, None] * t) * square_mm  # (n, samples) board mm along the axis
+    along = q[:, None, :] + step[:, :, None] * A[rows, :, axis][:, None, :]
+    side = (perp_mm * A[rows, :, 1 - axis])[:, None, :]
+    xy = np.concatenate([along + side, along - side], axis=1)  # (n, 2 samples, 2)
+    lo = np.floor(xy.min(axis=1)).astype(int) - 1
+    hi = np.ceil(xy.max(axis=1)).astype(int) + 2
+    values = np.full(xy.shape[:2], np.nan, np.float32)
+    inside = np.zeros(n, bool)
+    for r in range(n):
+        box = blurred.box(lo[r, 0], lo[r, 1], hi[r, 0], hi[r, 1])
+        if box is None:
+            continue
+        patch, origin = box
+        local = (xy[r] - origin).astype(np.float32)
+        values[r] = cv2.remap(patch, local[:, :1], local[:, 1:], cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan).ravel()
+        inside[r] = True
+    contrast = np.abs(values[:, :samples] - values[:, samples:])
+    reference = np.median(contrast[:, t <= 0.3], axis=1)
+    ended = ~(contrast >= 0.5 * reference[:, None])
+    first = np.where(ended.any(axis=1), ended.argmax(axis=1), samples)
+    extent = np.where(first < samples, t[np.minimum(first, samples - 1)] * square_mm, square_mm)
+    return np.where(inside & (reference > 0), extent, 0.0)
 
 
 def refine_saddles(gray, points: np.ndarray, object_xy: np.ndarray, square_mm: float,
@@ -173,7 +199,7 @@ def refine_saddles(gray, points: np.ndarray, object_xy: np.ndarray, square_mm: f
     neighbouring corners (``local_affines``): |u|, |v| within ``reach`` square of the corner, and
     ``guard`` px (3 sigma + 2: the blur and the gradient's stencil) short of the next grid line
     or, where there is no neighbouring corner, of where the print is seen to end
-    (``_print_extent``).  Both extents are taken symmetric (the shorter side rules), so the
+    (``_print_extents``).  Both extents are taken symmetric (the shorter side rules), so the
     window stays point-symmetric about q, as a saddle is; where the image border cuts it, only
     pixels whose mirror through q is inside count.  The weights, cos^2 along u times along v,
     fall to zero at the window's sides, so no pixel jumps in or out as q moves.  ``band_mm``
@@ -193,15 +219,21 @@ def refine_saddles(gray, points: np.ndarray, object_xy: np.ndarray, square_mm: f
     seen = np.flatnonzero(np.isfinite(affines[:, 0, 0]))
     A = affines[seen]
     A_inv = np.linalg.inv(A)
+    # Where a corner has no found neighbour, how far the print is seen to go on.
     cells = np.round(object_xy / square_mm).astype(int)
-    known = {tuple(c) for c in cells[np.isfinite(points).all(axis=1)]}
+    corner = cells.min(axis=0) - 1  # a cell of margin on every side
+    known = np.zeros(tuple(cells.max(axis=0) - corner + 2), bool)
+    known[tuple((cells[np.isfinite(points).all(axis=1)] - corner).T)] = True
+    m, k, sign = (a.ravel() for a in np.meshgrid(np.arange(len(seen)), [0, 1], [-1, 1],
+                                                 indexing="ij"))
+    neighbour = cells[seen[m]] - corner
+    neighbour[np.arange(len(m)), k] += sign
+    edge = ~known[tuple(neighbour.T)]
+    m, k, sign = m[edge], k[edge], sign[edge]
+    blurred = _Blurred(gray, sigma, len(m) + len(seen))  # a box per edge and per corner
     extent = np.full((len(seen), 2), square_mm)
-    for m, i in enumerate(seen):
-        for k in range(2):
-            for sign in (-1, 1):
-                if tuple(cells[i] + sign * np.eye(2, dtype=int)[k]) not in known:
-                    extent[m, k] = min(extent[m, k], _print_extent(
-                        gray, points[i], A[m], k, sign, square_mm, perp_mm, sigma))
+    np.minimum.at(extent, (m, k), _print_extents(blurred, points[seen[m]], A[m], k, sign,
+                                                square_mm, perp_mm))
     px_per_mm = np.linalg.norm(A, axis=1)  # (M, 2): px per board mm along u and v
     lim = np.minimum(reach * square_mm, extent - guard * np.linalg.norm(A_inv, axis=2))
     # Windows wider than MAX_WINDOW_PX px add nothing measurable but time (large images).
@@ -218,7 +250,7 @@ def refine_saddles(gray, points: np.ndarray, object_xy: np.ndarray, square_mm: f
     while len(pending):
         origin = np.floor(q[pending] - half[pending]).astype(int) - _SADDLE_MARGIN
         size = int((np.ceil(q[pending] + half[pending]) + 1 - origin).max()) + _SADDLE_MARGIN
-        blurred = _blurred_patches(gray, origin, size, sigma)
+        patches = _blurred_patches(blurred, origin, size)
         live = np.arange(len(pending))  # rows of the stack still iterating on it
         moved_out = []
         while len(live):
@@ -231,7 +263,7 @@ def refine_saddles(gray, points: np.ndarray, object_xy: np.ndarray, square_mm: f
             live, c, box_lo, box_hi = (a[~failed & ~out] for a in (live, c, box_lo, box_hi))
             if not len(live):
                 break
-            shift, solvable = _saddle_steps(blurred, live, origin[live], q[c], A_inv[c],
+            shift, solvable = _saddle_steps(patches, live, origin[live], q[c], A_inv[c],
                                             lim[c], box_lo, box_hi, band_mm, (width, height))
             q[c[solvable]] += shift[solvable]
             steps[c] += 1
@@ -243,19 +275,19 @@ def refine_saddles(gray, points: np.ndarray, object_xy: np.ndarray, square_mm: f
     return refined
 
 
-def _blurred_patches(gray, origin: np.ndarray, size: int, sigma: float) -> np.ndarray:
-    """(M, size + 2, size + 2) float64: ``gray`` blurred with ``sigma`` over the squares of
-    ``size`` px whose top-left pixels are ``origin`` (M, 2) (x, y), with one pixel more on every
-    side for the gradient's central differences; zero off the image.  Blurred once however
-    often the window moves within its square."""
-    blurred = np.zeros((len(origin), size + 2, size + 2))
+def _blurred_patches(blurred: _Blurred, origin: np.ndarray, size: int) -> np.ndarray:
+    """(M, size + 2, size + 2) float64: the image ``blurred`` over the squares of ``size`` px
+    whose top-left pixels are ``origin`` (M, 2) (x, y), with one pixel more on every side for
+    the gradient's central differences; zero off the image.  Blurred once however often the
+    window moves within its square."""
+    patches = np.zeros((len(origin), size + 2, size + 2))
     for k, (x, y) in enumerate(origin):
-        box = _blurred_box(gray, x - 1, y - 1, x + size + 1, y + size + 1, sigma)
+        box = blurred.box(x - 1, y - 1, x + size + 1, y + size + 1)
         if box is not None:
             patch, (bx, by) = box
-            blurred[k, by - y + 1:by - y + 1 + patch.shape[0],
+            patches[k, by - y + 1:by - y + 1 + patch.shape[0],
                     bx - x + 1:bx - x + 1 + patch.shape[1]] = patch
-    return blurred
+    return patches
 
 
 def _saddle_steps(blurred, rows, origin, q, A_inv, lim, box_lo, box_hi, band_mm, image_size):
