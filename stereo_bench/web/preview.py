@@ -9,12 +9,10 @@ cameras it previewed, which is what makes the next preview of the same camera fa
 
 from __future__ import annotations
 
-import json
 import multiprocessing
 import threading
 
 PREVIEW_SECONDS = 30.0
-MAX_PREVIEW_RAYS = 4  # cameras whose per-pixel rays are kept between previews
 
 
 class PreviewTimeout(RuntimeError):
@@ -72,41 +70,33 @@ class PreviewWorker:
 
 
 def _serve(conn) -> None:
-    import collections
-
-    rays: collections.OrderedDict = collections.OrderedDict()
     while True:
         try:
             config, camera, frame = conn.recv()
         except EOFError:
             return
         try:
-            conn.send((True, _render(config, camera, frame, rays)))
+            conn.send((True, _render(config, camera, frame)))
         except ValueError as e:
             conn.send((False, str(e)))
         except Exception as e:  # noqa: BLE001 — said to the page, the worker goes on
             conn.send((False, f"preview failed: {type(e).__name__}: {e}"))
 
 
-def _render(config: dict, camera: int, frame: int, rays_cache) -> tuple[bytes, dict]:
+def _render(config: dict, camera: int, frame: int) -> tuple[bytes, dict]:
     from ..config.schema import parse_rig
     from ..core.files import encode_png
     from ..scene.dataset import frame_rng, render_settings
-    from ..render import AnalyticRenderer, PixelRays
+    from ..render import AnalyticRenderer
     from ..scene.rig import Rig
 
     cfg = parse_rig(config, "form")
     rig = Rig.from_config(cfg)
     cam = rig.cameras[camera]
-    key = json.dumps(cam.to_dict(), sort_keys=True)
-    if key not in rays_cache:
-        rays_cache[key] = PixelRays(cam)
-        while len(rays_cache) > MAX_PREVIEW_RAYS:
-            rays_cache.popitem(last=False)
-    rays_cache.move_to_end(key)
-    renderer = AnalyticRenderer(cam, rig.pattern, render_settings(cfg, rig, cam), rays_cache[key])
+    # The worker process keeps the rays of the last lenses it rendered (render.pixel_rays).
+    renderer = AnalyticRenderer(cam, rig.pattern, render_settings(cfg, rig, cam))
     R, t = rig.cam_from_board(cam)
     image = renderer.render(R[frame], t[frame], frame_rng(cfg.seed, camera, frame))
     visible = int(rig.ground_truth().visible[camera, frame].sum())
     return encode_png(image), {"X-Visible-Points": str(visible), "X-Camera": cam.name,
-                           "X-Frames": str(len(rig.trajectory))}
+                               "X-Frames": str(len(rig.trajectory))}

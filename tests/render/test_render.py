@@ -262,3 +262,27 @@ def test_a_turned_view_renders_the_same_image(monkeypatch):
     turned = AnalyticRenderer(FISHEYE, BOARD, RenderSettings(), rays).render(R, t)
     diff = np.abs(straight.astype(int) - turned)
     assert diff.max() <= 1 and (diff > 0).mean() < 0.01
+
+
+def test_a_process_keeps_the_rays_of_a_lens_for_every_camera_of_it(monkeypatch):
+    """Cameras of one lens (another name, another pose) share the rays a process built for the
+    first, and render with them exactly what their own rays give; another lens gets its own,
+    and the oldest of more than MAX_KEPT_RAYS lenses is dropped; rays of another lens are
+    refused."""
+    from stereo_bench.render import analytic
+
+    monkeypatch.setattr(analytic, "_kept_rays", type(analytic._kept_rays)())
+    moved = WIDE.with_params(rvec=np.array([0.1, -0.2, 0.05]), tvec=np.array([30.0, 5.0, 0.0]))
+    moved = Camera.from_dict({**moved.to_dict(), "name": "other"})
+    first = analytic.pixel_rays(WIDE)
+    assert analytic.pixel_rays(moved) is first
+    R, t = facing(20.0, 400.0)
+    shared = AnalyticRenderer(moved, BOARD, RenderSettings()).render(R, t)
+    own = AnalyticRenderer(moved, BOARD, RenderSettings(), analytic.PixelRays(moved)).render(R, t)
+    assert np.array_equal(shared, own)
+    lenses = [Camera.from_dict({**WIDE.to_dict(), "fx": WIDE.fx + k}) for k in range(1, 5)]
+    assert all(analytic.pixel_rays(c) is not first for c in lenses)
+    assert len(analytic._kept_rays) == analytic.MAX_KEPT_RAYS
+    assert analytic.pixel_rays(WIDE) is not first  # the oldest was dropped
+    with pytest.raises(ValueError, match="another lens"):
+        AnalyticRenderer(lenses[0], BOARD, RenderSettings(), first)

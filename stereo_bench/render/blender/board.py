@@ -28,7 +28,7 @@ import numpy as np
 
 from ...core.camera import Camera
 from ...core.files import write_png
-from ..analytic import PixelRays, RenderSettings
+from ..analytic import PixelRays, RenderSettings, pixel_rays
 from ..imaging import camera_vignette, photograph
 from .client import Worker
 from .lens import PinholeView
@@ -64,7 +64,7 @@ class BlenderRenderer:
                  workdir: Path, px_per_mm: float = 20.0, samples: int = 64,
                  rays: PixelRays | None = None, noise_threshold: float = 0.0):
         self.camera, self.pattern, self.settings, self.worker = camera, pattern, settings, worker
-        rays = rays if rays is not None else PixelRays(camera)
+        rays = rays if rays is not None else pixel_rays(camera)
         self.view = PinholeView.of(camera, rays)
         self._vignette = camera_vignette(rays.xy[1:-1, 1:-1], settings.optics)
         self._frame = Path(workdir) / f"{camera.name}_pinhole.png"

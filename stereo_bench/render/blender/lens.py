@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from ...core.camera import Camera
-from ..analytic import PixelRays
+from ..analytic import PixelRays, pixel_rays
 
 MAX_SCALE = 2.0
 SUBSAMPLES = 3
@@ -50,7 +50,7 @@ class PinholeView:
     def of(cls, camera: Camera, rays: PixelRays | None = None) -> "PinholeView":
         """ValueError naming the camera when its lens sees past MAX_OFF_AXIS_DEG (or has
         pixels without a ray): no pinhole image holds such a view."""
-        rays = rays if rays is not None else PixelRays(camera)
+        rays = rays if rays is not None else pixel_rays(camera)
         xy = rays.xy.astype(np.float64)
         inner = xy[1:-1, 1:-1]
         if rays.unit is None:
