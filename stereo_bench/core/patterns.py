@@ -35,7 +35,6 @@ import abc
 import dataclasses
 import math
 from dataclasses import dataclass
-from pathlib import Path
 from typing import ClassVar
 
 import cv2
@@ -197,13 +196,6 @@ class Pattern(abc.ABC):
         black *= 255.0
         texture = np.rint(black, out=black).astype(np.uint8)
         return 255 - texture if self.inverted else texture
-
-    def save_texture(self, path: str | Path, px_per_mm: float) -> Path:
-        """Write ``texture(px_per_mm)`` as a PNG and return the path."""
-        path = Path(path)
-        if not cv2.imwrite(str(path), self.texture(px_per_mm)):
-            raise OSError(f"could not write texture PNG to {path}")
-        return path
 
 
 def _grid(cols: int, rows: int) -> tuple[np.ndarray, np.ndarray]:

@@ -272,9 +272,3 @@ def test_factory_rejects_unknown_kind_and_field():
 def test_invalid_geometry_names_the_field(kind, overrides, field):
     with pytest.raises(ValueError, match=field):
         pattern_from_config(kind, **overrides)
-
-
-def test_save_texture_round_trips(tmp_path):
-    board = SymmetricCircles()
-    path = board.save_texture(tmp_path / "sc.png", 3.0)
-    np.testing.assert_array_equal(cv2.imread(str(path), cv2.IMREAD_UNCHANGED), board.texture(3.0))
