@@ -113,13 +113,14 @@ class _Blurred:
     Each box is blurred alone with the kernel's reach of context on every side inside the
     image, so its values are those of the whole image blurred (both reflect at the image's own
     border), to float32 rounding (2 ulp, tests/detect/test_batched.py): blurring a few boxes costs
-    little where the whole 4096 x 3072 frame cost more than the fit itself.  A box blurred alone
-    costs about ``BOX_COST_PX`` pixels of a whole blur (the call's own overhead), so where the
-    ``boxes`` expected would cost more than the whole image (a 640 x 480 frame) the whole image
-    is blurred once and the boxes are cut from it.
+    little where the whole 4096 x 3072 frame cost more than the fit itself.  A 30 x 30 box
+    blurred alone costs about as much as ``BOX_COST_PX`` pixels of a whole blur (10 us, mostly
+    the call's own: measured against a 640 x 480 frame's 1 ms), so where the ``boxes`` expected
+    would cost more than the whole image (a checkerboard's 126 on the 640 x 480 camera) the
+    whole image is blurred once and the boxes are cut from it.
     """
 
-    BOX_COST_PX = 10_000
+    BOX_COST_PX = 3_000
 
     def __init__(self, gray, sigma: float, boxes: int):
         self.gray, self.sigma = gray, sigma
