@@ -211,7 +211,6 @@ def _normalized(rays: np.ndarray, has_ray: np.ndarray) -> tuple[np.ndarray, np.n
         return np.where(ahead[..., None], rays[..., :2] / rays[..., 2:], _NO_RAY), has_ray
 
 
-
 #: Pixel rays a process keeps (``pixel_rays``): it renders camera after camera and, as a sweep's
 #: worker or the web app's preview, configuration after configuration, mostly through the same
 #: few lenses; a 12 MP camera's rays take 1.3 s to build and hold 96 MiB.
