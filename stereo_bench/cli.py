@@ -158,7 +158,8 @@ def cmd_calibrate(args) -> int:
                      "calibration": {"intrinsics_views": args.intrinsics_views}},
                     f"--intrinsics-views {args.intrinsics_views} for {args.dataset}")
     out = Path(args.out or Path(args.dataset) / "calibration")
-    with locked(out), _workers(args) as workers:
+    workers = _workers(args)  # a refused option leaves no folder behind
+    with locked(out), workers:
         trials = _run(cfg, out, args, args.dataset, workers, first_dataset=base.root,
                       with_rig=False)
         agg = _report(trials, out, run_title(base.config))
@@ -174,8 +175,10 @@ def cmd_run(args) -> int:
     cfg = _renderable(load_rig(args.rig))
     out = Path(args.out or Path("out") / cfg.name)
     # The whole command holds the lock (trials, report and plots come from one run) and
-    # shares its worker processes between the stages and the plots.
-    with locked(out), _workers(args) as workers:
+    # shares its worker processes between the stages and the plots; a refused option leaves no
+    # folder behind.
+    workers = _workers(args)
+    with locked(out), workers:
         trials = _run(cfg, out, args, args.rig, workers)
         agg = _report(trials, out, run_title(cfg))
         plots = plot_run(out, trials, agg, workers)

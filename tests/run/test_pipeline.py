@@ -90,6 +90,15 @@ def test_bad_grid_is_an_error(tmp_path, capsys, bad):
     assert str(grid) in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("option", [["--workers", "0"], ["--trials", "0"], ["--workers", "65"]])
+def test_a_refused_option_leaves_no_folder(tmp_path, capsys, option):
+    out = tmp_path / "run"
+    assert main([str(Path(__file__).parents[2] / "configs" / "quickstart.yaml"), "--out",
+                 str(out), *option]) == 2
+    assert "--workers: expected 1..64" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_views_with_too_few_or_collinear_points_are_left_out_and_said():
     from stereo_bench.core.camera import Camera
     from stereo_bench.detect.dataset import CameraDetections
