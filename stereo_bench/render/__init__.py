@@ -9,6 +9,6 @@ builds them).
 """
 
 from .analytic import AnalyticRenderer, PixelRays, RenderSettings
-from .texels import gaussian_noise
+from .texels import noise_draws
 
-__all__ = ["AnalyticRenderer", "PixelRays", "RenderSettings", "gaussian_noise"]
+__all__ = ["AnalyticRenderer", "PixelRays", "RenderSettings", "noise_draws"]

@@ -31,9 +31,9 @@ at sub-frame poses over the exposure and averages them, sampling time and pixel 
 each sub-frame reads s points of every pixel (one in each row and column of the s x s grid, a
 different diagonal in consecutive sub-frames), so k sub-frames cost k s samples per pixel, not
 k s^2; a board that is not its pattern (board_shape.py) is met exactly by each ray; defocus,
-lens blur, vignetting and the sensor then turn the irradiance into the 8-bit image, on the
-board's box only (the rest is the constant background, whose response through the vignetting
-is computed once per renderer; the noise alone covers every pixel). Without them (``clean``)
+lens blur, vignetting and the sensor then turn the irradiance into the 8-bit image: the
+optics on the board's box only (the rest is the constant background), the sensor in one
+compiled pass over the box and the background around it. Without them (``clean``)
 the image is computed in integers exactly as before they existed.
 
 Conventions: millimetres, OpenCV pixel centres (top-left pixel centre = (0, 0)),
@@ -54,9 +54,9 @@ import numpy as np
 from ..core.board_shape import BoardShape
 from ..core.camera import Camera, project_cam_with_jacobians
 from ..core.poses import rodrigues_to_matrix, view_toward
-from .imaging import (MAX_MOTION_SUBFRAMES, Light, Motion, Optics, Sensor, blinn_phong, defocus,
-                      record, sensor_response, vignetting_map)
-from .texels import (OUTSIDE, cells_touching, gaussian_noise, inverse_2x2, linear_interpolation,
+from .imaging import (MAX_MOTION_SUBFRAMES, Light, Motion, Optics, Sensor, Surround, blinn_phong,
+                      defocus, expose, vignetting_map)
+from .texels import (OUTSIDE, cells_touching, inverse_2x2, linear_interpolation, noise_draws,
                      noisy_levels, offset_texels, plane_texels, sample_texels, time_area_offsets)
 
 _PAD = 2           # background texels around every texture (also absorbs perspectiveTransform's
@@ -363,7 +363,6 @@ class AnalyticRenderer:
         self._size = np.asarray(pattern.size_mm, dtype=np.float64)
         self._levels: OrderedDict[int, _Level] = OrderedDict()
         self._vignette: np.ndarray | None = None  # built on first use (_vignetting)
-        self._background = None  # built on first use (_background_response)
 
     # --- public -------------------------------------------------------------------------------
     def render(self, R: np.ndarray, t: np.ndarray, rng: np.random.Generator | None = None,
@@ -772,8 +771,8 @@ class AnalyticRenderer:
                 return noisy_levels(rng, canvas, st.sensor.noise_sigma)
             return cv2.convertScaleAbs(canvas, alpha=1 / 256)
         # Outside the board's box the image is the uniform background, which defocus and blur
-        # leave unchanged: only the box is filtered and exposed per frame, the background's
-        # response (vignetted) is the renderer's once, and only the noise covers every pixel.
+        # leave unchanged: only the box is filtered; the sensor's one pass exposes the box and
+        # the (vignetted) background around it (imaging.expose).
         optics = st.optics
         H, W = canvas.shape
         reach = 0.0
@@ -807,16 +806,12 @@ class AnalyticRenderer:
             box = within(blur_margin)
             region[box] = cv2.GaussianBlur(region[box], (0, 0), optics.blur_px,
                                            borderType=cv2.BORDER_REPLICATE)
-        if optics.corner_illumination < 1.0:
-            region *= self._vignetting()[rows, cols]
-        noise = gaussian_noise(rng, (H, W)) if st.sensor.noisy else None
-        background, background_sd = self._background_response()
-        dn = background.copy() if background_sd is None else background_sd * noise + background
-        mean, sd = sensor_response(region, st.sensor, st.white_level)
-        if sd is not None:
-            mean += sd * noise[rows, cols]
-        dn[rows, cols] = mean
-        return record(dn, st.sensor, st.white_level)
+        vignette = self._vignetting() if optics.corner_illumination < 1.0 else None
+        background = np.float32(round(st.background * 256)) * np.float32(1 / 256)
+        draws = noise_draws(rng, (H, W)) if st.sensor.noisy else None
+        return expose(region, st.sensor, st.white_level, draws,
+                      Surround((H, W), (rows.start, cols.start), background, self.rays.dark,
+                               vignette))
 
     def _board_box(self, strips: list, margin: int) -> tuple[slice, slice]:
         """The rows and columns of every strip drawn, widened by ``margin`` px (the rest of the
@@ -832,26 +827,12 @@ class AnalyticRenderer:
     def _plane_depth(xy: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """Depth (mm along the optical axis) where the rays of normalized coordinates xy (..., 2)
         meet the board's plane; inf where they do not (a warp's millimetres do not matter to a
-        blur)."""
-        n = R[:, 2]
+        blur). In xy's precision: float32 for a frame's pixels (1e-7 of a blur's radius)."""
+        n0, n1, n2 = (float(v) for v in R[:, 2])
         with np.errstate(divide="ignore", invalid="ignore"):
-            depth = (n @ t) / (xy[..., 0] * n[0] + xy[..., 1] * n[1] + n[2])
+            depth = float(R[:, 2] @ t) / (xy[..., 0] * n0 + xy[..., 1] * n1 + n2)
         depth[~(depth > 0)] = np.inf
         return depth
-
-    def _background_response(self) -> tuple[np.ndarray, np.ndarray | np.float32 | None]:
-        """The sensor's (mean, sd) (imaging.sensor_response) of the background seen through
-        the vignetting, (H, W) float32 (built once per renderer)."""
-        if self._background is None:
-            st = self.settings
-            H, W = self.camera.height, self.camera.width
-            level = np.float32(round(st.background * 256)) * np.float32(1 / 256)
-            irradiance = np.full((H, W), level, dtype=np.float32)
-            self._surround(irradiance)
-            if st.optics.corner_illumination < 1.0:
-                irradiance *= self._vignetting()
-            self._background = sensor_response(irradiance, st.sensor, st.white_level)
-        return self._background
 
     def _vignetting(self) -> np.ndarray:
         """(H, W) float32 relative illumination of each pixel (built once per renderer)."""

@@ -31,9 +31,10 @@ import math
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
 
-from .texels import gaussian_noise
+from .texels import NORMAL_QUANTILES, noise_draws
 
 MAX_MOTION_SUBFRAMES = 32
 _DEFOCUS_LEVELS = 12      # disc radii a frame's defocus is interpolated between
@@ -141,19 +142,33 @@ def disc_kernel(radius_px: float, oversample: int = 8) -> np.ndarray:
 def defocus(image: np.ndarray, radius_px: np.ndarray) -> np.ndarray:
     """``image`` (H, W) float32 blurred by a disc whose radius varies per pixel (``radius_px``
     (H, W)): the image filtered at up to ``_DEFOCUS_LEVELS`` radii spanning the map's range,
-    blended per pixel between the two radii that bracket it (linear in the radius)."""
+    blended per pixel between the two radii that bracket it (linear in the radius).
+
+    Each radius is filtered only over the rows and columns where it has weight (the radius
+    follows the depth, which varies smoothly), widened by its kernel's reach."""
     lo, hi = float(radius_px.min()), float(radius_px.max())
     if hi < 0.05:
         return image
     step = max((hi - lo) / (_DEFOCUS_LEVELS - 1), _DEFOCUS_MIN_STEP_PX)
     levels = lo + step * np.arange(int(math.ceil((hi - lo) / step)) + 1)
     pos = (radius_px - lo) / step
+    H, W = image.shape
+    spans = [(pos.min(axis=1 - axis), pos.max(axis=1 - axis)) for axis in (0, 1)]
     out = np.zeros_like(image)
     for k, r in enumerate(levels):
-        weight = np.maximum(1.0 - np.abs(pos - k), 0.0)
-        if weight.any():
-            out += weight * cv2.filter2D(image, -1, disc_kernel(r),
-                                         borderType=cv2.BORDER_REPLICATE)
+        # Level k has weight where |pos - k| < 1: its rows and columns.
+        (r0, r1), (c0, c1) = [(i[0], i[-1] + 1) if len(i) else (0, 0) for i in
+                              (np.flatnonzero((a < k + 1) & (b > k - 1)) for a, b in spans)]
+        if r1 <= r0 or c1 <= c0:
+            continue
+        kernel = disc_kernel(r)
+        n = kernel.shape[0] // 2
+        R0, R1, C0, C1 = max(r0 - n, 0), min(r1 + n, H), max(c0 - n, 0), min(c1 + n, W)
+        blurred = cv2.filter2D(image[R0:R1, C0:C1], -1, kernel,
+                               borderType=cv2.BORDER_REPLICATE)[r0 - R0:r1 - R0, c0 - C0:c1 - C0]
+        weight = np.maximum(np.float32(1) - np.abs(pos[r0:r1, c0:c1] - np.float32(k)),
+                            np.float32(0))
+        out[r0:r1, c0:c1] += weight * blurred
     return out
 
 
@@ -200,70 +215,115 @@ def photograph(image: np.ndarray, optics: Optics, sensor: Sensor, white_level: f
         image = cv2.GaussianBlur(image, (0, 0), optics.blur_px, borderType=cv2.BORDER_REPLICATE)
     if vignette is not None:
         image = image * (vignette[..., None] if image.ndim == 3 else vignette)
-    noise = gaussian_noise(rng, image.shape) if sensor.noisy else None
-    return expose(image, sensor, white_level, noise)
+    return expose(image, sensor, white_level, noise_draws(rng, image.shape) if sensor.noisy
+                  else None)
 
 
-def expose(irradiance: np.ndarray, sensor: Sensor, white_level: float, noise: np.ndarray | None
-           ) -> np.ndarray:
+@dataclass(frozen=True)
+class Surround:
+    """The frame around an exposed box: ``shape`` (H, W), the box's top-left pixel ``origin``
+    (row, column), the uniform irradiance ``level`` every other pixel sees, ``dark`` (H, W)
+    bool the pixels that see nothing (irradiance 0; None: none), ``vignette`` (H, W) float32
+    the relative illumination of every pixel, the box's too (None: none)."""
+
+    shape: tuple[int, int]
+    origin: tuple[int, int]
+    level: float
+    dark: np.ndarray | None = None
+    vignette: np.ndarray | None = None
+
+
+def expose(irradiance: np.ndarray, sensor: Sensor, white_level: float,
+           draws: np.ndarray | None, surround: Surround | None = None) -> np.ndarray:
     """The 8-bit image (H, W) uint8 a sensor records from ``irradiance`` (H, W) float32, in grey
     levels of a noise-free camera whose white print under full light is ``white_level``; a
     colour image (H, W, 3) is recorded channel by channel.
 
-    ``noise``: standard normal float32 of the image's shape (one draw serves shot, read and
-    additive noise: their sum is Gaussian with the summed variance), required when
-    ``sensor.noisy``.
+    ``draws``: the noise's draws (:func:`texels.noise_draws`, one per pixel of the output: one
+    standard normal draw serves shot, read and additive noise, their sum being Gaussian with
+    the summed variance), required when ``sensor.noisy``. ``surround``: ``irradiance`` is only
+    a box of a larger frame (the renderer exposes the board's box and the constant background
+    around it in the same pass).
+
+    The photon transfer model in float32, pixel by pixel in one compiled pass: electrons
+    (irradiance times electrons per grey level), the noise's sd in grey levels from the shot
+    (electrons), read and additive noise, saturation at the full well after the noise (a
+    saturated pixel reads the full well), the ADC, rounding half to even and saturation to 8
+    bits; then the optional JPEG round trip.
     """
-    dn, sd = sensor_response(irradiance, sensor, white_level)
-    if sd is not None:
-        dn += sd * noise
-    return record(dn, sensor, white_level)
-
-
-def sensor_response(irradiance: np.ndarray, sensor: Sensor, white_level: float
-                    ) -> tuple[np.ndarray, np.ndarray | np.float32 | None]:
-    """(mean, sd): the grey levels (H, W) float32 the sensor reads from ``irradiance`` before
-    its noise, and the noise's standard deviation in grey levels (per pixel for the photon
-    model, one number for additive noise alone, None without noise). Each pixel's pair
-    depends on its irradiance alone, so a region of constant irradiance can be computed once
-    (:meth:`AnalyticRenderer` does so for the background)."""
     s = sensor
     f32 = np.float32
-    if s.full_well_e is None:
-        return irradiance * f32(s.gain), (f32(s.noise_sigma) if s.noise_sigma > 0 else None)
-    e_per_dn = _electrons_per_dn(s, white_level)
-    to_dn = s.gain / e_per_dn
-    electrons = np.maximum(irradiance * f32(e_per_dn), f32(0))
-    # Variance in grey levels: shot (electrons), read noise and the additive noise.
-    var = electrons * f32(to_dn ** 2)
-    var += f32((s.read_noise_e * to_dn) ** 2 + s.noise_sigma ** 2)
-    return electrons * f32(to_dn), cv2.sqrt(var)
+    if s.noisy and draws is None:
+        raise ValueError("expose: a noisy sensor needs the noise's draws")
+    colour = irradiance.ndim == 3
+    box = np.ascontiguousarray(irradiance, np.float32).reshape(irradiance.shape[0], -1)
+    if surround is None:
+        surround = Surround(box.shape, (0, 0), 0.0)
+    H, W = surround.shape
+    photon = s.full_well_e is not None
+    e_per_dn = _electrons_per_dn(s, white_level) if photon else 1.0
+    to_dn = s.gain / e_per_dn if photon else s.gain
+    out = np.empty((H, W), np.uint8)
+    none2 = np.zeros((0, 0), np.bool_)
+    _expose(box, *surround.origin, f32(surround.level),
+            none2 if surround.dark is None else surround.dark,
+            none2.astype(np.float32) if surround.vignette is None else surround.vignette,
+            np.zeros((0, 0), np.uint16) if draws is None else draws.reshape(H, W),
+            NORMAL_QUANTILES, photon, s.noisy, f32(e_per_dn), f32(to_dn),
+            f32(to_dn ** 2), f32(((s.read_noise_e * to_dn) ** 2 if photon else 0.0)
+                                 + s.noise_sigma ** 2),
+            f32(s.noise_sigma), f32(s.full_well_e * to_dn if photon else np.inf),
+            f32(256.0 / (1 << s.adc_bits) if s.adc_bits < 8 else 0.0), out)
+    image = out.reshape(irradiance.shape) if colour else out
+    if s.jpeg_quality is not None:
+        ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(s.jpeg_quality)])
+        image = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    return image
+
+
+@numba.njit(cache=True, nogil=True)
+def _expose(box, r0, c0, level, dark, vignette, draws, quantiles, photon, noisy, e_per_dn,
+            to_dn, var_scale, var_add, sigma, full, adc_step, out):
+    # Every operation in float32 in the order of numpy's float32 arithmetic, each rounded.
+    zero, top, half = np.float32(0), np.float32(255.999), np.float32(adc_step / 2)
+    h, w = box.shape
+    H, W = out.shape
+    for i in range(H):
+        for j in range(W):
+            if r0 <= i < r0 + h and c0 <= j < c0 + w:
+                irradiance = box[i - r0, j - c0]
+            elif dark.size and dark[i, j]:
+                irradiance = zero
+            else:
+                irradiance = level
+            if vignette.size:
+                irradiance = irradiance * vignette[i, j]
+            if photon:
+                electrons = irradiance * e_per_dn
+                if electrons < zero:
+                    electrons = zero
+                dn = electrons * to_dn
+                if noisy:
+                    var = electrons * var_scale
+                    var = var + var_add
+                    dn = dn + np.sqrt(var) * quantiles[draws[i, j]]
+                if dn > full:
+                    dn = full
+            else:
+                dn = irradiance * to_dn
+                if noisy:
+                    dn = dn + sigma * quantiles[draws[i, j]]
+            if adc_step > 0:
+                clipped = min(max(dn, zero), top)
+                dn = np.floor(clipped / adc_step) * adc_step + half
+            level8 = np.rint(dn)
+            out[i, j] = 0 if level8 < 0 else 255 if level8 > 255 else np.uint8(level8)
 
 
 def _electrons_per_dn(sensor: Sensor, white_level: float) -> float:
     """Electrons per grey level of the noise-free image: the white print collects
     exposure * full_well electrons."""
     return sensor.exposure * sensor.full_well_e / white_level
-
-
-def record(dn: np.ndarray, sensor: Sensor, white_level: float) -> np.ndarray:
-    """The 8-bit image of ``dn`` float32, :func:`sensor_response`'s mean plus its sd times the
-    noise: saturation at the full well (after the noise: a saturated pixel reads the full
-    well), the ADC, rounding to 8 bits and the optional JPEG round trip. ``dn`` is
-    overwritten."""
-    s = sensor
-    f32 = np.float32
-    if s.full_well_e is not None:
-        to_dn = s.gain / _electrons_per_dn(s, white_level)
-        np.minimum(dn, f32(s.full_well_e * to_dn), out=dn)
-    if s.adc_bits < 8:
-        step = 256.0 / (1 << s.adc_bits)
-        dn = np.floor(np.clip(dn, 0, 255.999) / step) * step + step / 2
-    image = cv2.convertScaleAbs(np.maximum(dn, f32(0)))  # rounds and saturates to 0..255
-    if s.jpeg_quality is not None:
-        ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(s.jpeg_quality)])
-        image = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
-    return image
 
 
 def blinn_phong(points: np.ndarray, normal: np.ndarray, lamp: np.ndarray, light: Light,

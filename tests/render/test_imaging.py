@@ -19,7 +19,7 @@ from stereo_bench.render import AnalyticRenderer, RenderSettings
 from stereo_bench.render.imaging import (Light, Motion, Optics, Sensor, blinn_phong, disc_kernel,
                                          camera_vignette, expose, photograph, vignetting_gain,
                                          vignetting_map)
-from stereo_bench.render.texels import time_area_offsets
+from stereo_bench.render.texels import NORMAL_QUANTILES, noise_draws, time_area_offsets
 
 
 def frontal(depth=400.0, shift=(0.0, 0.0)):
@@ -273,9 +273,8 @@ def test_motion_blur_keeps_the_truth_at_mid_exposure(rays):
 def test_sensor_noise_follows_the_photon_transfer_curve(exposure):
     sensor = Sensor(full_well_e=10000.0, exposure=exposure, read_noise_e=5.0)
     irradiance = np.full((400, 400), 110.0, dtype=np.float32)
-    rng = np.random.default_rng(0)
-    from stereo_bench.render import gaussian_noise
-    img = expose(irradiance, sensor, 235.0, gaussian_noise(rng, irradiance.shape))
+    img = expose(irradiance, sensor, 235.0, noise_draws(np.random.default_rng(0),
+                                                        irradiance.shape))
     e_per_dn = exposure * 10000.0 / 235.0
     electrons = 110.0 * e_per_dn
     sigma = np.sqrt(electrons + 25.0) / e_per_dn
@@ -298,12 +297,45 @@ def test_sensor_saturates_adc_quantizes_and_jpeg_is_a_round_trip():
 
 
 @pytest.mark.parametrize("sensor", [
+    Sensor(full_well_e=6000.0, exposure=0.3, read_noise_e=3.0, gain=1.4, noise_sigma=0.7),
+    Sensor(full_well_e=900.0, exposure=0.9, gain=2.5, adc_bits=5),
+    Sensor(noise_sigma=3.0, gain=1.2, adc_bits=6), Sensor(gain=1.7)])
+def test_the_compiled_sensor_is_the_photon_transfer_model_in_float32(sensor):
+    """expose's one compiled pass gives, byte for byte, the photon transfer model written as
+    numpy float32 operations (each rounded as numpy rounds it): electrons, the noise's sd from
+    shot, read and additive noise, the full well after the noise, the ADC, rounding half to
+    even and saturation to 8 bits; over a ramp from below black to past saturation."""
+    f32 = np.float32
+    irradiance = np.tile(np.linspace(-20, 400, 640, dtype=np.float32), (48, 1))
+    draws = noise_draws(np.random.default_rng(2), irradiance.shape)
+    noise = NORMAL_QUANTILES[draws]
+    if sensor.full_well_e is not None:
+        e_per_dn = sensor.exposure * sensor.full_well_e / 235.0
+        to_dn = sensor.gain / e_per_dn
+        electrons = np.maximum(irradiance * f32(e_per_dn), f32(0))
+        var = electrons * f32(to_dn ** 2)
+        var += f32((sensor.read_noise_e * to_dn) ** 2 + sensor.noise_sigma ** 2)
+        dn = electrons * f32(to_dn) + np.sqrt(var) * noise
+        dn = np.minimum(dn, f32(sensor.full_well_e * to_dn))
+    else:
+        dn = irradiance * f32(sensor.gain)
+        if sensor.noise_sigma > 0:
+            dn = dn + f32(sensor.noise_sigma) * noise
+    if sensor.adc_bits < 8:
+        step = f32(256.0 / (1 << sensor.adc_bits))
+        dn = np.floor(np.clip(dn, f32(0), f32(255.999)) / step) * step + f32(step / 2)
+    expected = np.clip(np.rint(dn), 0, 255).astype(np.uint8)
+    assert np.array_equal(expose(irradiance, sensor, 235.0, draws if sensor.noisy else None),
+                          expected)
+
+
+@pytest.mark.parametrize("sensor", [
     Sensor(full_well_e=6000.0, exposure=0.3, read_noise_e=3.0, gain=1.4, jpeg_quality=85),
     Sensor(noise_sigma=3.0, adc_bits=6)])
 def test_the_sensor_on_the_boards_box_is_the_sensor_on_the_whole_frame(rays, sensor):
-    """The renderer exposes only the board's box per frame and takes the (vignetted)
-    background's response from a map it built once: byte for byte the whole-frame sensor on
-    the same noise draw."""
+    """The renderer filters only the board's box per frame and exposes it with the (vignetted)
+    background around it in one pass: byte for byte the whole-frame sensor on the same noise
+    draws."""
     settings = RenderSettings(optics=Optics(corner_illumination=0.6), sensor=sensor)
     renderer = AnalyticRenderer(WIDE, BOARD, settings, rays(WIDE))
     R, t = tilted(depth=500.0)
@@ -313,9 +345,8 @@ def test_the_sensor_on_the_boards_box_is_the_sensor_on_the_whole_frame(rays, sen
     assert 0 < sum((r1 - r0) * (c1 - c0) for r0, r1, c0, c1, _ in strips) < canvas.size / 2
     irradiance = canvas.astype(np.float32) * np.float32(1 / 256)
     irradiance *= vignetting_map(rays(WIDE).xy[1:-1, 1:-1], 0.6)
-    from stereo_bench.render import gaussian_noise
-    noise = gaussian_noise(np.random.default_rng(5), canvas.shape)
-    assert np.array_equal(img, expose(irradiance, sensor, 235.0, noise))
+    draws = noise_draws(np.random.default_rng(5), canvas.shape)
+    assert np.array_equal(img, expose(irradiance, sensor, 235.0, draws))
 
 
 def test_photograph_records_each_colour_channel_as_a_sensor_of_its_own():
@@ -499,13 +530,12 @@ def test_noisy_levels_equal_opencvs_weighted_sum_of_the_same_draws(sigma):
     """The compiled integer path of additive noise gives, pixel for pixel, OpenCV's float32
     weighted sum (rounded half to even, saturated) of the same draws, and leaves the rng where
     the noise image would."""
-    from stereo_bench.render import gaussian_noise
     from stereo_bench.render.texels import noisy_levels
     canvas = np.random.default_rng(9).integers(0, 1 << 16, (480, 640)).astype(np.uint16)
     canvas[:8] = 0  # black and white rows, where the noise saturates
     canvas[8:16] = 0xFFFF
     a, b = np.random.default_rng(4), np.random.default_rng(4)
-    expected = cv2.addWeighted(canvas, 1 / 256, gaussian_noise(a, canvas.shape), sigma, 0,
-                               dtype=cv2.CV_8U)
+    expected = cv2.addWeighted(canvas, 1 / 256, NORMAL_QUANTILES[noise_draws(a, canvas.shape)],
+                               sigma, 0, dtype=cv2.CV_8U)
     assert np.array_equal(noisy_levels(b, canvas, sigma), expected)
     assert a.integers(1 << 30) == b.integers(1 << 30)
