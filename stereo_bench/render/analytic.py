@@ -387,8 +387,8 @@ class AnalyticRenderer:
         H, W = self.camera.height, self.camera.width
         poses = self._exposure_poses(R, t, velocity)
         view = self.rays.toward(self.pattern.outline_mm() @ R[:, :2].T + t)
-        canvas = np.full((H, W), round(st.background * 256), dtype=np.uint16)
         if len(poses) == 1:
+            canvas = np.full((H, W), round(st.background * 256), dtype=np.uint16)
             strips = self._draw_board(canvas, R, t, view)
             return self._finish(self._surround(canvas), strips, rng, *view.pose(R, t), view)
         canvas, strips = self._draw_exposure(poses, view, R, t)
