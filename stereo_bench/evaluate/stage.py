@@ -219,47 +219,63 @@ def with_given_intrinsics(camera: Camera, obs: Observations) -> CalibrationResul
 
 def calibrate_cameras(source, dets: list[CameraDetections], methods: list[str],
                       trial: TrialPaths, calibration: CalibrationConfig,
-                      given: dict[str, Camera] | None = None
+                      given: dict[str, Camera] | None = None, workers=1
                       ) -> tuple[dict, dict[tuple[str, str], Estimate], dict]:
     """Calibrate every camera of ``source`` (a rendered ``Dataset`` or a real capture's
     ``ImageFolders``: they share this stage) with every method, saving each estimate under
     ``trial``. A camera in ``given`` (name -> Camera) keeps those intrinsics for every method,
     only its board poses fitted (``with_given_intrinsics``), and its entries say so.
+    The cameras are independent: with ``workers`` (a count, or the command's
+    ``run.workers.Workers``) they are calibrated that many at a time.
 
     Returns ``entries[method][camera]`` (``summary`` plus the wall time, or ``{"error": ...}``),
     the estimates by (method, camera), and per camera the found views left out with the reason
     (``observations``) or, when the camera has no usable view, the reason as a string.
     """
+    from ..run.workers import in_processes
+
+    jobs = [(source, c, det, methods, trial, calibration, (given or {}).get(cam.name))
+            for c, (cam, det) in enumerate(zip(source.cameras, dets))]
     entries = {m: {} for m in methods}
     estimates, left_out = {}, {}
-    for c, (cam, det) in enumerate(zip(source.cameras, dets)):
-        try:
-            obs, dropped = observations(det, source.object_points, cam,
-                                        intrinsics_frames(source, c, calibration))
-            left_out[cam.name] = dropped
-        except ValueError as e:
-            left_out[cam.name] = str(e)
-            for m in methods:
-                entries[m][cam.name] = {"error": str(e)}
-            continue
+    for cam, (done, made, dropped) in zip(source.cameras,
+                                          in_processes(_calibrate_camera, jobs, workers)):
+        left_out[cam.name] = dropped
         for m in methods:
-            t0 = time.perf_counter()
-            try:
-                result = (with_given_intrinsics(given[cam.name], obs)
-                          if cam.name in (given or {}) else
-                          get_calibrator(m, **warp_option(m, calibration)).calibrate(obs))
-                result = CalibrationResult(result.camera.with_params(name=cam.name),
-                                           result.rvecs, result.tvecs, result.log)
-                save_calibration(result, obs, trial, m)
-                entry = summary(result, obs)
-                if cam.name in (given or {}):
-                    entry["intrinsics_given"] = True
-                estimates[m, cam.name] = Estimate(result, obs)
-            except (ValueError, np.linalg.LinAlgError, RuntimeError) as e:
-                entry = {"error": f"{type(e).__name__}: {e}"}
-            entry["wall_time_s"] = time.perf_counter() - t0
-            entries[m][cam.name] = entry
+            entries[m][cam.name] = done[m]
+            if m in made:
+                estimates[m, cam.name] = made[m]
     return entries, estimates, left_out
+
+
+def _calibrate_camera(args) -> tuple[dict, dict[str, Estimate], dict | str]:
+    """One camera of ``calibrate_cameras``: its entries and estimates by method, and its views
+    left out (or why it has none)."""
+    source, c, det, methods, trial, calibration, given = args
+    cam = source.cameras[c]
+    try:
+        obs, dropped = observations(det, source.object_points, cam,
+                                    intrinsics_frames(source, c, calibration))
+    except ValueError as e:
+        return {m: {"error": str(e)} for m in methods}, {}, str(e)
+    entries, estimates = {}, {}
+    for m in methods:
+        t0 = time.perf_counter()
+        try:
+            result = (with_given_intrinsics(given, obs) if given is not None else
+                      get_calibrator(m, **warp_option(m, calibration)).calibrate(obs))
+            result = CalibrationResult(result.camera.with_params(name=cam.name),
+                                       result.rvecs, result.tvecs, result.log)
+            save_calibration(result, obs, trial, m)
+            entry = summary(result, obs)
+            if given is not None:
+                entry["intrinsics_given"] = True
+            estimates[m] = Estimate(result, obs)
+        except (ValueError, np.linalg.LinAlgError, RuntimeError) as e:
+            entry = {"error": f"{type(e).__name__}: {e}"}
+        entry["wall_time_s"] = time.perf_counter() - t0
+        entries[m] = entry
+    return entries, estimates, dropped
 
 
 def clear_calibrations(trial: TrialPaths) -> None:
@@ -272,9 +288,10 @@ def clear_calibrations(trial: TrialPaths) -> None:
 def evaluate_dataset(ds: Dataset, methods: list[str], trial: TrialPaths,
                      calibration: CalibrationConfig, progress=None,
                      notes: Notes | None = None,
-                     detected: DatasetDetections | None = None) -> dict:
+                     detected: DatasetDetections | None = None, workers=1) -> dict:
     """Detect (or take the detections ``detected`` as the dataset was rendered), calibrate with
-    each method, score; write everything under ``trial``.
+    each method (the cameras ``workers`` at a time, ``calibrate_cameras``), score; write
+    everything under ``trial``.
 
     ``calibration``: the settings of the calibration stage, from the rig file of the run (they
     may have changed since the images were rendered; the dataset does not hold them).
@@ -292,7 +309,8 @@ def evaluate_dataset(ds: Dataset, methods: list[str], trial: TrialPaths,
     gt = ds.ground_truth
     rig = ds.rig()
     inside = ds.root.resolve().is_relative_to(trial.root.resolve())
-    entries, estimates, left_out = calibrate_cameras(ds, dets, methods, trial, calibration)
+    entries, estimates, left_out = calibrate_cameras(ds, dets, methods, trial, calibration,
+                                                     workers=workers)
     report = {"fingerprint": metrics_fingerprint(det_fp, methods, calibration),
               "intrinsics_views": calibration.intrinsics_views,
               # Relative inside the trial, so that two runs into different folders agree.

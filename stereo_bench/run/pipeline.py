@@ -296,7 +296,7 @@ def run_trial(cfg: RigConfig, out: Path, methods: list[str], progress=None,
 
     ``dataset_dir``: an existing dataset to use instead of rendering into the trial directory.
     ``workers`` (a count, or the command's ``workers.Workers``): processes that render and
-    detect the cameras (``write_dataset``) and make the methods' rigs.
+    detect the cameras (``write_dataset``), calibrate them and make the methods' rigs.
     The returned report (the trial's metrics.json plus ``rig``, ``timing`` and ``notes``) says in
     ``notes`` which stages were redone and why, and carries the dataset's warnings.
     """
@@ -307,7 +307,7 @@ def run_trial(cfg: RigConfig, out: Path, methods: list[str], progress=None,
     report = reusable(trial.metrics, expected, notes, "calibration")
     if report is None:
         report = evaluate_dataset(ds, methods, trial, cfg.calibration, progress, notes,
-                                  detected)
+                                  detected, workers)
     report["rig"] = {}
     if with_rig and len(ds.cameras) >= 2:
         settings = rig_settings(cfg.calibration)

@@ -50,6 +50,25 @@ def test_a_camera_that_never_finds_the_board_is_recorded(tmp_path):
     assert "error" in result["rig"]["opencv"]
 
 
+def test_cameras_calibrated_side_by_side_are_calibrated_as_one_by_one(tmp_path):
+    """With worker processes the cameras are calibrated side by side: the same entries (a
+    camera that fails included) and the same rigs as in this process, one camera after the
+    other."""
+    d = small_rig(frames=4)
+    d["cameras"].append(dict(d["cameras"][1], name="tiny", width=40, height=30, fx=37.5,
+                             fy=28.0, cx=20.0, cy=15.0))
+    cfg = parse_rig(d)
+
+    def timeless(x):
+        if isinstance(x, dict):
+            return {k: timeless(v) for k, v in x.items() if not k.endswith("time_s")}
+        return [timeless(v) for v in x] if isinstance(x, list) else x
+    one, two = (run(cfg, tmp_path / f"w{w}", ["zhang", "opencv"], workers=w)[0] for w in (1, 2))
+    assert "error" in one["calibration"]["opencv"]["tiny"]
+    assert timeless(one["calibration"]) == timeless(two["calibration"])
+    assert timeless(one["rig"]) == timeless(two["rig"])
+
+
 def test_cli_run_writes_report_and_plots(tmp_path):
     rig = tmp_path / "rig.yaml"
     rig.write_text(yaml.safe_dump(small_rig(frames=6)))
