@@ -29,9 +29,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
-import pickle
-import subprocess
 import sys
 import tempfile
 import time
@@ -42,6 +39,7 @@ import cv2
 import numpy as np
 
 from detection_accuracy import CAMERAS, rig_with_board, row
+from revision import revision_server
 from stereo_bench.config.environments import PRESETS as ENVIRONMENTS
 from stereo_bench.scene.dataset import Dataset, write_dataset
 from stereo_bench.detect.boards import METHODS, detect
@@ -50,7 +48,6 @@ from stereo_bench.detect.dataset import CameraDetections, detection_errors
 COLUMNS = ("pattern", "camera", "detector", "frames found", "points found", "mean", "max",
            "flips", "s/frame")
 SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.001)
-REPO = Path(__file__).resolve().parents[1]
 # The subprocess that runs a revision's detection: reads (kind, pattern fields, gray image) from
 # stdin, writes (points, seconds in detect) to stdout, with the stereo_bench first on its path.
 SERVER = """
@@ -113,29 +110,15 @@ def dataset_for(root: Path, camera: str, path: Path, kind: str, frames: int,
 
 @contextmanager
 def revision_detector(rev: str):
-    """A function (gray, pattern) -> (points, seconds) that runs ``rev``'s detection: the
-    revision checked out in a temporary git worktree, a subprocess (``SERVER``) importing
-    stereo_bench from there, timed inside the subprocess around detect alone."""
-    with tempfile.TemporaryDirectory() as tmp:
-        tree = Path(tmp) / "tree"
-        subprocess.run(["git", "-C", str(REPO), "worktree", "add", "--detach", "--quiet",
-                        str(tree), rev], check=True)
-        server = subprocess.Popen([sys.executable, "-c", SERVER], cwd=tree,
-                                  env={**os.environ, "PYTHONPATH": str(tree)},
-                                  stdin=subprocess.PIPE, stdout=subprocess.PIPE)
-        try:
-            def run(gray, pattern):
-                fields = {f.name: getattr(pattern, f.name) for f in dataclasses.fields(pattern)
-                          if f.init}
-                pickle.dump((pattern.kind, fields, gray), server.stdin)
-                server.stdin.flush()
-                return pickle.load(server.stdout)
-            yield run
-        finally:
-            server.stdin.close()
-            server.wait()
-            subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)],
-                           check=True)
+    """A function (gray, pattern) -> (points, seconds) that runs ``rev``'s detection
+    (revision.revision_server with ``SERVER``), timed inside the subprocess around detect
+    alone."""
+    with revision_server(rev, SERVER) as ask:
+        def run(gray, pattern):
+            fields = {f.name: getattr(pattern, f.name) for f in dataclasses.fields(pattern)
+                      if f.init}
+            return ask((pattern.kind, fields, gray))
+        yield run
 
 
 def timed(run):
