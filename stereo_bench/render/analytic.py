@@ -56,7 +56,7 @@ from ..core.camera import Camera, project_cam_with_jacobians
 from ..core.poses import rodrigues_to_matrix, view_toward
 from .imaging import (MAX_MOTION_SUBFRAMES, Light, Motion, Optics, Sensor, Surround, blinn_phong,
                       defocus, expose, vignetting_map)
-from .texels import (OUTSIDE, cells_touching, inverse_2x2, linear_interpolation, noise_draws,
+from .texels import (OUTSIDE, cells_touching, grid_interpolation, inverse_2x2, noise_draws,
                      noisy_levels, offset_texels, plane_texels, sample_texels, time_area_offsets)
 
 _PAD = 2           # background texels around every texture (also absorbs perspectiveTransform's
@@ -600,8 +600,7 @@ class AnalyticRenderer:
             nodes = exact(coarse) - plane(coarse, False)
             # Separable linear interpolation in float (cv2.remap would round its positions to
             # 1/32 of a cell).
-            nodes = linear_interpolation(nodes.astype(np.float32), rows, h, 0)
-            return linear_interpolation(nodes, cols, w, 1)
+            return grid_interpolation(nodes, rows, cols, h, w)
         return shift
 
     def _locate(self, B: np.ndarray, R: np.ndarray, t: np.ndarray, view: RayView):

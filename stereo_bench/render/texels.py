@@ -67,17 +67,41 @@ def inverse_2x2(J: np.ndarray) -> np.ndarray:
     return inv.reshape(-1, 2, 2)
 
 
-def linear_interpolation(values: np.ndarray, nodes: np.ndarray, n: int, axis: int
-                         ) -> np.ndarray:
-    """``values`` given at the increasing integer positions ``nodes`` (first 0, last n - 1)
-    along ``axis``, linearly interpolated at 0..n-1 (each output from its two nodes)."""
+def grid_interpolation(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, h: int, w: int
+                       ) -> np.ndarray:
+    """``values`` (a, b, C) float32 given at the increasing integer ``rows`` (a,) and ``cols``
+    (b,) (first 0, last h - 1 and w - 1), linearly interpolated at every pixel (h, w, C):
+    first along the rows, then along the columns, each output from its two nodes in float32,
+    in one compiled pass (numpy's take and arithmetic per axis cost 1.5 ms a band)."""
+    return _grid_interpolation(np.ascontiguousarray(values, np.float32), *_brackets(rows, h),
+                               *_brackets(cols, w))
+
+
+def _brackets(nodes: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """For 0..n-1: the index of the node at or before each (the last interval's for n - 1)
+    and the float32 fraction of the way to the next node."""
     i = np.arange(n)
     k = np.clip(np.searchsorted(nodes, i, side="right") - 1, 0, len(nodes) - 2)
-    shape = [1] * values.ndim
-    shape[axis] = n
-    frac = ((i - nodes[k]) / (nodes[k + 1] - nodes[k])).astype(values.dtype).reshape(shape)
-    left = np.take(values, k, axis=axis)
-    return left + (np.take(values, k + 1, axis=axis) - left) * frac
+    return k, ((i - nodes[k]) / (nodes[k + 1] - nodes[k])).astype(np.float32)
+
+
+@numba.njit(cache=True, nogil=True)
+def _grid_interpolation(values, kr, fr, kc, fc):
+    b, C = values.shape[1], values.shape[2]
+    h, w = len(kr), len(kc)
+    rows = np.empty((h, b, C), np.float32)
+    for i in range(h):
+        k, f = kr[i], fr[i]
+        for j in range(b):
+            for c in range(C):
+                rows[i, j, c] = values[k, j, c] + (values[k + 1, j, c] - values[k, j, c]) * f
+    out = np.empty((h, w, C), np.float32)
+    for i in range(h):
+        for j in range(w):
+            k, f = kc[j], fc[j]
+            for c in range(C):
+                out[i, j, c] = rows[i, k, c] + (rows[i, k + 1, c] - rows[i, k, c]) * f
+    return out
 
 
 def plane_texels(M: np.ndarray):

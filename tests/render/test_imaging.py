@@ -539,3 +539,21 @@ def test_noisy_levels_equal_opencvs_weighted_sum_of_the_same_draws(sigma):
                                sigma, 0, dtype=cv2.CV_8U)
     assert np.array_equal(noisy_levels(b, canvas, sigma), expected)
     assert a.integers(1 << 30) == b.integers(1 << 30)
+
+
+def test_grid_interpolation_is_linear_between_its_nodes_in_each_axis():
+    """The board as made's shift is exact on a grid of nodes and linear in between
+    (texels.grid_interpolation): np.interp along the rows, then the columns, in float64, within
+    float32 rounding; exact at the nodes (but the last row's and column's, reached as the end
+    of their interval)."""
+    from stereo_bench.render.texels import grid_interpolation
+    h, w = 37, 53
+    rows, cols = np.array([0, 4, 9, 13, 17, 22, 26, 31, 36]), np.arange(0, w, 4)
+    values = np.random.default_rng(1).normal(size=(len(rows), len(cols), 2)).astype(np.float32)
+    out = grid_interpolation(values, rows, cols, h, w)
+    along_rows = np.stack([[np.interp(np.arange(h), rows, values[:, j, c]) for j in
+                            range(len(cols))] for c in range(2)], -1).transpose(1, 0, 2)
+    expected = np.stack([[np.interp(np.arange(w), cols, along_rows[i, :, c]) for i in range(h)]
+                         for c in range(2)], -1)
+    assert out.shape == (h, w, 2) and np.abs(out - expected).max() < 1e-5
+    assert np.array_equal(out[np.ix_(rows[:-1], cols[:-1])], values[:-1, :-1])
