@@ -312,7 +312,14 @@ def _saddle_steps(blurred, rows, origin, q, A_inv, lim, box_lo, box_hi, band_mm,
     normal = sums[:, [0, 1, 1, 2]].reshape(-1, 2, 2)
     # sum w g g^T (p - q), the pixel p relative to the square's top-left.
     rhs = sums[:, 3:] - (normal @ (q - origin)[:, :, None])[..., 0]
-    solvable = np.linalg.cond(normal) <= 1e6
+    # The normal matrix [[a, b], [b, c]] is symmetric and positive semi-definite: its condition
+    # number is its eigenvalues' ratio, here in closed form (np.linalg.cond's batched SVD cost
+    # 0.75 ms of the 640 x 480 checkerboard's 11 ms a frame).
+    a, b, c = sums[:, 0], sums[:, 1], sums[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        largest = 0.5 * (a + c) + np.hypot(0.5 * (a - c), b)
+        smallest = (a * c - b * b) / largest  # the determinant over the other eigenvalue
+        solvable = (largest > 0) & (smallest * 1e6 >= largest)
     shift = np.zeros_like(q)
     shift[solvable] = np.linalg.solve(normal[solvable], rhs[solvable, :, None])[..., 0]
     return shift, solvable
