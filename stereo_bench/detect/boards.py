@@ -103,12 +103,12 @@ def detect(image: np.ndarray, pattern: Pattern, method: str | None = None,
     # same candidates, the plain ids first), so where the board is likely out of view it goes
     # first: when it finds none, neither would the first search.
     charuco = pattern.kind == "charuco"
-    if charuco and not in_view and not _any_marker_seen(search, pattern):
+    if charuco and not in_view and not _any_marker_seen(search.image, pattern):
         return failed_detection(pattern, NO_MARKER)
     found = _detect_in(first, search, pattern, method)
     if found.found:
         return found
-    if charuco and in_view and not _any_marker_seen(search, pattern):
+    if charuco and in_view and not _any_marker_seen(search.image, pattern):
         return found
     other = _detect_in(255 - first, _search_image(255 - first, pattern), pattern, method)
     if other.found or pattern.kind != "charuco":
@@ -368,7 +368,7 @@ def _detect_charuco(gray, search: _SearchImage, pattern: Charuco) -> Detection:
     # images 3x found twice the corners (1493 against 740 of 2112 over 24 clean frames) at no
     # cost in accuracy.  CharucoDetector then interpolates the chessboard corners from the
     # scaled-back markers and refines them on the full image.
-    aruco = cv2.aruco.ArucoDetector(board.getDictionary(), _marker_search(search.scale[0]))
+    aruco = cv2.aruco.ArucoDetector(board.getDictionary(), cv2.aruco.DetectorParameters())
     markers, marker_ids, _ = aruco.detectMarkers(search.image)
     if marker_ids is None or len(marker_ids) == 0:
         return failed_detection(pattern, NO_MARKER)
@@ -399,26 +399,16 @@ def _detect_charuco(gray, search: _SearchImage, pattern: Charuco) -> Detection:
     return Detection(points, pattern.ids(), True)
 
 
-def _any_marker_seen(search: "_SearchImage", pattern: Charuco) -> bool:
-    """Whether one marker search of ``search`` (the same thresholds as the board's search)
-    finds any marker of the board's dictionary in either polarity, as printed or mirrored."""
+def _any_marker_seen(search_image: np.ndarray, pattern: Charuco) -> bool:
+    """Whether one marker search of ``search_image`` finds any marker of the board's dictionary
+    in either polarity (``detectInvertedMarker``), as printed or mirrored."""
     detector = cv2.aruco.ArucoDetector(_with_mirrored_markers(pattern.dictionary),
-                                       _marker_search(search.scale[0], inverted_too=True))
-    return len(detector.detectMarkers(search.image)[0]) > 0
+                                       _INVERTED_TOO)
+    return len(detector.detectMarkers(search_image)[0]) > 0
 
 
-def _marker_search(scale: float, inverted_too: bool = False) -> cv2.aruco.DetectorParameters:
-    """ArUco's defaults, but without the smallest adaptive threshold window on a search copy
-    enlarged ``scale`` >= 3x, where its 3 px span at most one pixel of the image: what it
-    thresholds there is the interpolation. On the wide 640 px camera (enlarged 3x) the search
-    then finds the same markers, and the same corners, in 4/5 of the time (16 clean and 16
-    noisy frames). At h36m_rectangle's 1.92x it still finds markers of its own (50 of 7880
-    corners), which the calibrations use: there it stays."""
-    params = cv2.aruco.DetectorParameters()
-    if scale >= 3:
-        params.adaptiveThreshWinSizeMin = 13  # with the default step of 10: windows 13 and 23
-    params.detectInvertedMarker = inverted_too
-    return params
+_INVERTED_TOO = cv2.aruco.DetectorParameters()
+_INVERTED_TOO.detectInvertedMarker = True
 
 
 @functools.cache

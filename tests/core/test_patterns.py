@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
-from stereo_bench.detect.boards import _any_marker_seen, _search_image, detect
+from stereo_bench.detect.boards import _any_marker_seen, detect
 from stereo_bench.core.patterns import (PATTERNS, AsymmetricCircles, Charuco, Checkerboard,
                                         SymmetricCircles, pattern_from_config)
 
@@ -219,8 +219,8 @@ def test_one_marker_search_tells_whether_a_charuco_board_is_in_view():
     board, px_per_mm = Charuco(), 6.61
     image = view(board, px_per_mm, 1.0)
     for seen in (image, 255 - image, image[:, ::-1], 255 - image[:, ::-1]):
-        assert _any_marker_seen(_search_image(np.ascontiguousarray(seen), board), board)
-    assert not _any_marker_seen(_search_image(view(Checkerboard(), px_per_mm, 1.0), board), board)
+        assert _any_marker_seen(np.ascontiguousarray(seen), board)
+    assert not _any_marker_seen(view(Checkerboard(), px_per_mm, 1.0), board)
     # Looked for first (a board likely out of view), it changes the order, not the result.
     for seen in (image, 255 - image[:, ::-1], view(Checkerboard(), px_per_mm, 1.0)):
         seen = np.ascontiguousarray(seen)
