@@ -48,26 +48,28 @@ from stereo_bench.detect.dataset import CameraDetections, detection_errors
 COLUMNS = ("pattern", "camera", "detector", "frames found", "points found", "mean", "max",
            "flips", "s/frame")
 SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.001)
-# The subprocess that runs a revision's detection: reads (kind, pattern fields, gray image) from
-# stdin, writes (points, seconds in detect) to stdout, with the stereo_bench first on its path.
+# The subprocess that runs a revision's detection (revision.serve): answers (kind, pattern
+# fields, gray image) with (points, seconds in detect).
 SERVER = """
-import pickle, sys, time
+import time
+from revision import serve
 try:
     from stereo_bench.core.patterns import pattern_from_config
     from stereo_bench.detect.boards import detect
 except ImportError:  # revisions before the packages (stereo_bench/detect.py, patterns.py)
     from stereo_bench.detect import detect
     from stereo_bench.patterns import pattern_from_config
-while True:
-    try:
-        kind, fields, gray = pickle.load(sys.stdin.buffer)
-    except EOFError:
-        break
+
+
+def answer(request):
+    kind, fields, gray = request
     pattern = pattern_from_config(kind, **fields)
     start = time.perf_counter()
     points = detect(gray, pattern).points
-    pickle.dump((points, time.perf_counter() - start), sys.stdout.buffer)
-    sys.stdout.buffer.flush()
+    return points, time.perf_counter() - start
+
+
+serve(answer)
 """
 
 

@@ -3,9 +3,10 @@
 
 The revision is checked out in a temporary git worktree and served by a subprocess whose
 ``PYTHONPATH`` puts that tree first, so that ``import stereo_bench`` there is the revision's
-(the working tree's is this process's). The subprocess runs ``code`` (a loop that answers
-pickled requests on stdin with pickled replies on stdout); the benchmark times what it asks
-for inside the subprocess, turn by turn with its own work, so that both see the same load.
+(the working tree's is this process's), then this folder (the benchmarks as they are now). The
+subprocess runs ``code``, which answers pickled requests on stdin with pickled replies on
+stdout (``serve``); the benchmark times what it asks for inside the subprocess, turn by turn
+with its own work, so that both see the same load.
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
 
 
 @contextmanager
@@ -29,7 +31,8 @@ def revision_server(rev: str, code: str):
         subprocess.run(["git", "-C", str(REPO), "worktree", "add", "--detach", "--quiet",
                         str(tree), rev], check=True)
         server = subprocess.Popen([sys.executable, "-c", code], cwd=tree,
-                                  env={**os.environ, "PYTHONPATH": str(tree)},
+                                  env={**os.environ,
+                                       "PYTHONPATH": os.pathsep.join([str(tree), str(HERE)])},
                                   stdin=subprocess.PIPE, stdout=subprocess.PIPE)
         try:
             def ask(request):
@@ -42,3 +45,15 @@ def revision_server(rev: str, code: str):
             server.wait()
             subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)],
                            check=True)
+
+
+def serve(answer) -> None:
+    """The subprocess's loop: each pickled request on stdin answered with ``answer(request)``,
+    pickled on stdout, until stdin closes."""
+    while True:
+        try:
+            request = pickle.load(sys.stdin.buffer)
+        except EOFError:
+            return
+        pickle.dump(answer(request), sys.stdout.buffer)
+        sys.stdout.buffer.flush()
