@@ -15,8 +15,8 @@ the true camera (mean px, and after compensating a rotation). Figures, not a pas
 
 With ``--baseline REV`` each method of git revision REV (a worktree of REV served by a
 subprocess, revision.py) calibrates the same views right after the working tree's, best of
-``--repeat`` timed in its own process; the table adds its best time and how far the working tree's camera is from REV's
-(the largest difference of fx, fy, cx, cy in px).
+``--repeat`` timed in its own process; the table adds its best time and how far the working
+tree's camera is from REV's (the largest difference of fx, fy, cx, cy in px).
 
     python benchmarks/calibration_speed.py [--repeat 3] [--sigma 0.3] [--seed 0]
                                            [--methods zhang bouguet-brown ...] [--baseline REV]
