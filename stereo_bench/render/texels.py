@@ -5,6 +5,9 @@ in the image, and the renderer's Gaussian noise (its integer path compiled with 
 
 from __future__ import annotations
 
+import math
+import sys
+
 import cv2
 import numba
 import numpy as np
@@ -17,7 +20,19 @@ def noise_draws(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
     """The sensor noise's draws (shape) uint16 from ``rng``: draw d is the standard normal
     value ``NORMAL_QUANTILES[d]`` (inverse-CDF sampling of 16-bit uniforms, 3x faster than
     ``standard_normal``: the 65536 equiprobable quantiles of N(0, 1), rescaled to unit
-    variance; tails are cut at 4.3 sigma, probability 1.5e-5)."""
+    variance; tails are cut at 4.3 sigma, probability 1.5e-5).
+
+    The draws are ``rng.integers(0, 1 << 16, shape, uint16)``'s. numpy takes those 16 bits at a
+    time from 32-bit words, low half first, and PCG64 its 32-bit words from 64-bit outputs, low
+    half first: so, on a little-endian machine, when the generator holds no half-used word and
+    the count is a multiple of four, they are its raw 64-bit outputs read as uint16 (6 ms on a
+    12 MP frame against 13; tests/render/test_imaging.py checks both ways agree and leave the
+    generator alike). Otherwise they are drawn as integers."""
+    n = math.prod(shape)
+    bits = rng.bit_generator
+    if n % 4 == 0 and sys.byteorder == "little" and type(bits) is np.random.PCG64 \
+            and not bits.state["has_uint32"]:
+        return bits.random_raw(n // 4).view(np.uint16).reshape(shape)
     return rng.integers(0, 1 << 16, size=shape, dtype=np.uint16)
 
 
@@ -26,7 +41,7 @@ def noisy_levels(rng: np.random.Generator, canvas: np.ndarray, sigma: float) -> 
     ``sigma`` levels (:func:`noise_draws`): the same values as
     ``cv2.addWeighted(canvas, 1 / 256, NORMAL_QUANTILES[draws], sigma, 0, dtype=cv2.CV_8U)``
     (float32 arithmetic, rounded half to even, saturated), in one compiled pass without the
-    float noise image: 18 ms on a 12 MP frame against 41 ms."""
+    float noise image: 10 ms on a 12 MP frame against 41 ms."""
     draws = noise_draws(rng, canvas.shape)
     return _noisy_levels(canvas, draws, NORMAL_QUANTILES, np.float32(sigma))
 
@@ -35,10 +50,15 @@ def noisy_levels(rng: np.random.Generator, canvas: np.ndarray, sigma: float) -> 
 def _noisy_levels(canvas, draws, quantiles, sigma):
     out = np.empty(canvas.shape, np.uint8)
     scale = np.float32(1 / 256)
+    noise = np.empty(canvas.shape[1], np.float32)
     for i in range(canvas.shape[0]):
+        # The row's noise gathered first: the arithmetic that follows then compiles to vector
+        # instructions (10 ms on a 12 MP frame against 19 with the gather in the same loop).
         for j in range(canvas.shape[1]):
-            level = np.rint(np.float32(canvas[i, j]) * scale + quantiles[draws[i, j]] * sigma)
-            out[i, j] = 0 if level < 0 else 255 if level > 255 else np.uint8(level)
+            noise[j] = quantiles[draws[i, j]] * sigma
+        for j in range(canvas.shape[1]):
+            level = np.rint(np.float32(canvas[i, j]) * scale + noise[j])
+            out[i, j] = np.uint8(min(max(level, np.float32(0)), np.float32(255)))
     return out
 
 

@@ -541,6 +541,26 @@ def test_noisy_levels_equal_opencvs_weighted_sum_of_the_same_draws(sigma):
     assert a.integers(1 << 30) == b.integers(1 << 30)
 
 
+@pytest.mark.parametrize("shape", [(480, 640), (4, 4), (3, 5), (1,)])
+@pytest.mark.parametrize("before", ["nothing", "a normal", "a 32-bit integer"])
+def test_noise_draws_are_the_generators_16_bit_integers(shape, before):
+    """noise_draws reads the generator's raw words where it can (a count that is a multiple of
+    four, no half-used word): the draws are rng.integers' all the same, and the generator goes
+    on alike, whatever was drawn from it before."""
+    a, b = np.random.default_rng([0, 1, 2]), np.random.default_rng([0, 1, 2])
+    for rng in (a, b):
+        if before == "a normal":
+            rng.normal(size=3)
+        elif before == "a 32-bit integer":  # leaves half of a 64-bit word
+            rng.integers(0, 1 << 32, dtype=np.uint32)
+    draws = noise_draws(b, shape)
+    assert draws.dtype == np.uint16 and draws.shape == shape
+    assert np.array_equal(draws, a.integers(0, 1 << 16, size=shape, dtype=np.uint16))
+    assert np.array_equal(a.integers(0, 1 << 16, 9, dtype=np.uint16),
+                          b.integers(0, 1 << 16, 9, dtype=np.uint16))
+    assert a.normal() == b.normal()
+
+
 def test_grid_interpolation_is_linear_between_its_nodes_in_each_axis():
     """The board as made's shift is exact on a grid of nodes and linear in between
     (texels.grid_interpolation): np.interp along the rows, then the columns, in float64, within
