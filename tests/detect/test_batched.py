@@ -14,8 +14,8 @@ import pytest
 from stereo_bench.core.patterns import AsymmetricCircles, Checkerboard, SymmetricCircles
 from stereo_bench.detect import discs
 from stereo_bench.detect.boards import _find_circle_grid, _SearchImage
-from stereo_bench.detect.saddle import (_Blurred, _blurred_patches, _saddle_steps, local_affines,
-                                        nearest_mm)
+from stereo_bench.detect.saddle import (_Blurred, _blurred_patches, _leave_one_out, _saddle_steps,
+                                        local_affines, nearest_mm)
 
 BOUND_PX = 1e-6
 H = (np.array([[0.9, 0.2, 60.0], [-0.12, 0.85, 90.0], [0.0, 0.0, 1.0]])
@@ -148,3 +148,73 @@ def test_a_box_blurred_alone_equals_the_whole_image_blurred(sigma):
             continue
         assert a[1] == b[1] and a[0].dtype == b[0].dtype == np.float32
         assert np.abs(a[0] - b[0]).max() <= 3 * np.spacing(np.float32(255)), box
+
+
+@pytest.mark.parametrize("sigma", [0.8, 1.5])
+def test_patches_cut_from_the_whole_blur_equal_those_cut_box_by_box(sigma):
+    """A small image's patches come from its whole blur in one compiled pass: the values
+    ``_Blurred.box`` gives, with zeros off the image, at every border."""
+    gray, _ = warped(Checkerboard(), 1.8)
+    whole = _Blurred(gray, sigma, 10 ** 6)
+    origin = np.array([[200, 150], [-9, -4], [620, 460], [-30, 100], [300, 490]])
+    size = 24
+    expected = np.zeros((len(origin), size + 2, size + 2))
+    for k, (x, y) in enumerate(origin):
+        box = whole.box(x - 1, y - 1, x + size + 1, y + size + 1)
+        if box is not None:
+            patch, (bx, by) = box
+            expected[k, by - y + 1:by - y + 1 + patch.shape[0],
+                     bx - x + 1:bx - x + 1 + patch.shape[1]] = patch
+    assert np.array_equal(_blurred_patches(whole, origin, size), expected)
+
+
+def fits_one_point_at_a_time(object_xy, points, radius_mm):
+    """``local_affines`` and ``_leave_one_out`` by their definitions, one point at a time with
+    lstsq and matrix_rank over its neighbours."""
+    n = len(points)
+    affines, misfit, loo = np.full((n, 2, 2), np.nan), np.full(n, np.nan), np.full(n, np.nan)
+    seen = np.isfinite(points).all(axis=1)
+    for i in np.flatnonzero(seen):
+        near = [j for j in np.flatnonzero(seen) if j != i
+                and np.linalg.norm(object_xy[j] - object_xy[i]) <= radius_mm]
+        d_obj, d_img = object_xy[near] - object_xy[i], points[near] - points[i]
+        # Rank as matrix_rank decides it over the N x 2 offsets (zero rows for the others).
+        rows = np.zeros((n, 2))
+        rows[:len(near)] = d_obj
+        if np.linalg.matrix_rank(rows) == 2:
+            A = np.linalg.lstsq(d_obj, d_img, rcond=None)[0].T
+            affines[i] = A
+            misfit[i] = (np.linalg.norm(d_obj @ A.T - d_img, axis=1).max()
+                         / np.linalg.norm(A, 2))
+        if len(near) >= 3:
+            sol = np.linalg.lstsq(np.column_stack([d_obj, np.ones(len(near))]), points[near],
+                                  rcond=None)[0]
+            loo[i] = np.linalg.norm(sol[2] - points[i]) / np.linalg.norm(sol[:2], 2)
+    return affines, misfit, loo
+
+
+@pytest.mark.parametrize("pattern", [Checkerboard(), SymmetricCircles(), AsymmetricCircles()])
+def test_local_fits_of_all_points_equal_one_point_at_a_time(pattern):
+    """The compiled local fits against lstsq point by point: perspective views with noise,
+    points missing at random, and lone rows (neighbours on a line: no map, the prediction
+    lstsq's minimum-norm answer): the same points fitted, equal to 1e-9 of their scale."""
+    object_xy = pattern.object_points()[:, :2]
+    radius = 1.5 * nearest_mm(object_xy)
+    rng = np.random.default_rng(3)
+    for trial in range(40):
+        H = np.array([[3 + rng.normal(0, 0.5), rng.normal(0, 0.5), 300.0],
+                      [rng.normal(0, 0.5), 3 + rng.normal(0, 0.5), 200.0],
+                      [rng.normal(0, 1e-3), rng.normal(0, 1e-3), 1.0]])
+        image = np.column_stack([object_xy, np.ones(len(object_xy))]) @ H.T
+        points = image[:, :2] / image[:, 2:] + rng.normal(0, 0.3, object_xy.shape)
+        points[rng.random(len(points)) < [0.0, 0.3, 0.6, 0.85][trial % 4]] = np.nan
+        if trial % 5 == 0:
+            points[5:] = np.nan  # the first row's start alone
+        affines, misfit = local_affines(object_xy, points, radius)
+        loo = _leave_one_out(object_xy, points, radius)
+        ref_affines, ref_misfit, ref_loo = fits_one_point_at_a_time(object_xy, points, radius)
+        for ours, ref in [(affines, ref_affines), (misfit, ref_misfit), (loo, ref_loo)]:
+            assert np.array_equal(np.isnan(ours), np.isnan(ref)), trial
+            fitted = np.isfinite(ref)
+            assert np.all(np.abs(ours[fitted] - ref[fitted])
+                          <= 1e-9 * np.maximum(np.abs(ref[fitted]), 1.0)), trial
