@@ -18,10 +18,10 @@ are from that revision's (max |difference|, px, and whether the same points are 
 
 Prints, per pattern, camera and detector: frames found, share of the visible points detected,
 mean and max distance to the exact ground truth (px, over the detected points of frames not
-flipped), orientation flips, and wall-clock seconds per frame, with the OpenCV version and its
-thread count (timings depend on both).  It prints, it does not assert.
+flipped), orientation flips, and wall-clock ms per frame with its ratio to OpenCV's, with the
+OpenCV version and its thread count (timings depend on both).  It prints, it does not assert.
 
-    python benchmarks/detection_speed.py [--frames 8] [--keep DIR] [--baseline REV]
+    python benchmarks/detection_speed.py [--frames 8] [--repeat 1] [--keep DIR] [--baseline REV]
         [--environment noisy] [--patterns checkerboard charuco]
 """
 
@@ -46,7 +46,7 @@ from stereo_bench.detect.boards import METHODS, detect
 from stereo_bench.detect.dataset import CameraDetections, detection_errors
 
 COLUMNS = ("pattern", "camera", "detector", "frames found", "points found", "mean", "max",
-           "flips", "s/frame")
+           "flips", "ms/frame", "x OpenCV")
 SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.001)
 # The subprocess that runs a revision's detection (revision.serve): answers (kind, pattern
 # fields, gray image) with (points, seconds in detect).
@@ -143,9 +143,12 @@ def main(argv=None) -> None:
                         help="the imaging preset the frames are rendered in (default clean)")
     parser.add_argument("--patterns", nargs="+", choices=list(METHODS), default=list(METHODS),
                         help="the boards measured (default: all four)")
+    parser.add_argument("--repeat", type=int, default=1, help="detect each frame this many "
+                        "times with each detector (a small camera's few ms vary from run to run)")
     args = parser.parse_args(argv)
-    if args.frames < 1:
-        raise ValueError(f"--frames: expected a positive frame count, got {args.frames}")
+    if args.frames < 1 or args.repeat < 1:
+        raise ValueError(f"--frames, --repeat: expected positive counts, got {args.frames} and "
+                         f"{args.repeat}")
 
     with tempfile.TemporaryDirectory() as tmp, (
             revision_detector(args.baseline) if args.baseline else nullcontext()) as baseline:
@@ -156,20 +159,22 @@ def main(argv=None) -> None:
             detectors = {f"stereo_bench@{args.baseline}": baseline, **detectors}
             columns += ("max |new - base| px", "same NaN rows")
         print(f"OpenCV {cv2.__version__} ({cv2.getNumThreads()} threads), {args.frames} frames "
-              f"per dataset, {args.environment} renders; distances in px against the ground "
-              "truth\n")
+              f"per dataset, each detected {args.repeat} time(s) per detector, "
+              f"{args.environment} renders; distances in px against the ground truth\n")
         print(row(columns))
         print(row("---" for _ in columns))
         root = args.keep or Path(tmp)
         for kind in args.patterns:
             for camera, path in CAMERAS.items():
                 measure(dataset_for(root, camera, path, kind, args.frames, args.environment),
-                        camera, kind, detectors, args.baseline)
+                        camera, kind, detectors, args.baseline, args.repeat)
 
 
-def measure(dataset: Dataset, camera: str, kind: str, detectors: dict, baseline: str | None):
-    """Detect every frame of ``dataset`` with each detector in turn (frame by frame, so all
-    see the same load) and print a row per detector."""
+def measure(dataset: Dataset, camera: str, kind: str, detectors: dict, baseline: str | None,
+            repeat: int = 1):
+    """Detect every frame of ``dataset`` ``repeat`` times with each detector in turn (frame by
+    frame, so all see the same load) and print a row per detector, its mean time a detection
+    beside OpenCV's."""
     pattern, n = dataset.pattern, len(dataset.pattern.ids())
     points = {name: np.full((dataset.frames, n, 2), np.nan) for name in detectors}
     seconds = dict.fromkeys(detectors, 0.0)
@@ -181,9 +186,10 @@ def measure(dataset: Dataset, camera: str, kind: str, detectors: dict, baseline:
         gray = dataset.image(0, f)
         if gray.ndim == 3:
             gray = cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
-        for name, run in detectors.items():
-            points[name][f], spent = run(gray, pattern)
-            seconds[name] += spent
+        for _ in range(repeat):
+            for name, run in detectors.items():
+                points[name][f], spent = run(gray, pattern)
+                seconds[name] += spent / repeat
     truth = dataset.ground_truth
     for name in detectors:
         found = np.isfinite(points[name]).all(-1).any(-1)
@@ -192,7 +198,8 @@ def measure(dataset: Dataset, camera: str, kind: str, detectors: dict, baseline:
                              truth.points[0], truth.visible[0])
         cells = [kind, camera, name, f"{e['found']}/{e['frames']}",
                  f"{100 * e['point_detection_rate']:.1f} %", f"{e['mean_px']:.4f}",
-                 f"{e['max_px']:.4f}", e["flips"], f"{seconds[name] / dataset.frames:.3f}"]
+                 f"{e['max_px']:.4f}", e["flips"], f"{1e3 * seconds[name] / dataset.frames:.1f}",
+                 f"{seconds[name] / seconds['OpenCV']:.2f}"]
         if baseline:
             old, new = points[f"stereo_bench@{baseline}"], points["stereo_bench"]
             same = np.array_equal(np.isnan(old), np.isnan(new))

@@ -255,23 +255,62 @@ def _print_extents(blurred: _Blurred, q, A, axis, sign, square_mm, perp_mm,
     xy = np.concatenate([along + side, along - side], axis=1)  # (n, 2 samples, 2)
     lo = np.floor(xy.min(axis=1)).astype(int) - 1
     hi = np.ceil(xy.max(axis=1)).astype(int) + 2
-    values = np.full(xy.shape[:2], np.nan, np.float32)
-    inside = np.zeros(n, bool)
-    for r in range(n):
-        box = blurred.box(lo[r, 0], lo[r, 1], hi[r, 0], hi[r, 1])
-        if box is None:
-            continue
-        patch, origin = box
-        local = (xy[r] - origin).astype(np.float32)
-        values[r] = cv2.remap(patch, local[:, :1], local[:, 1:], cv2.INTER_LINEAR,
-                              borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan).ravel()
-        inside[r] = True
+    if blurred.whole is not None:
+        # A small image's boxes are views of its whole blur: ``blurred.box``'s cut, and every
+        # corner's samples in one compiled pass (a remap a corner cost 0.8 ms of the 640 x 480
+        # checkerboard's 6 ms a frame).
+        start = np.maximum(lo, 0)
+        end = np.minimum(hi, blurred.gray.shape[::-1])
+        inside = np.all(end > start, axis=1)
+        values = _bilinear_in_boxes(blurred.whole, start, end, inside,
+                                    (xy - start[:, None, :]).astype(np.float32))
+    else:
+        values = np.full(xy.shape[:2], np.nan, np.float32)
+        inside = np.zeros(n, bool)
+        for r in range(n):
+            box = blurred.box(lo[r, 0], lo[r, 1], hi[r, 0], hi[r, 1])
+            if box is None:
+                continue
+            patch, origin = box
+            local = (xy[r] - origin).astype(np.float32)
+            values[r] = cv2.remap(patch, local[:, :1], local[:, 1:], cv2.INTER_LINEAR,
+                                  borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan).ravel()
+            inside[r] = True
     contrast = np.abs(values[:, :samples] - values[:, samples:])
     reference = np.median(contrast[:, t <= 0.3], axis=1)
     ended = ~(contrast >= 0.5 * reference[:, None])
     first = np.where(ended.any(axis=1), ended.argmax(axis=1), samples)
     extent = np.where(first < samples, t[np.minimum(first, samples - 1)] * square_mm, square_mm)
     return np.where(inside & (reference > 0), extent, 0.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _bilinear_in_boxes(image, start, end, inside, local):
+    """(n, S) float32: ``image`` read bilinearly at ``local`` (n, S, 2) (x, y) px from each
+    box's top-left ``start`` (n, 2), as cv2.remap (INTER_LINEAR, BORDER_CONSTANT NaN) reads
+    the box [start, end) alone: NaN where a tap is off the box, and NaN rows where not
+    ``inside``.  Each value is two lerps along x and one along y, each a fused multiply-add
+    (OpenCV's, on this machine's instructions; done here in float64, where the float32 product
+    is exact): equal to cv2.remap's bit for bit (tests/detect/test_batched.py)."""
+    n, samples = local.shape[0], local.shape[1]
+    out = np.full((n, samples), np.nan, np.float32)
+    for r in range(n):
+        if not inside[r]:
+            continue
+        width, height = end[r, 0] - start[r, 0], end[r, 1] - start[r, 1]
+        for s in range(samples):
+            x, y = local[r, s, 0], local[r, s, 1]
+            fx, fy = np.floor(x), np.floor(y)
+            if not (0 <= fx and fx + 1 < width and 0 <= fy and fy + 1 < height):
+                continue  # also NaN coordinates
+            col, row = start[r, 0] + int(fx), start[r, 1] + int(fy)
+            a, b = np.float64(x - fx), np.float64(y - fy)
+            p00, p01 = image[row, col], image[row, col + 1]
+            p10, p11 = image[row + 1, col], image[row + 1, col + 1]
+            top = np.float32(a * np.float64(p01 - p00) + np.float64(p00))
+            bottom = np.float32(a * np.float64(p11 - p10) + np.float64(p10))
+            out[r, s] = np.float32(b * np.float64(bottom - top) + np.float64(top))
+    return out
 
 
 def refine_saddles(gray, points: np.ndarray, object_xy: np.ndarray, square_mm: float,
@@ -333,32 +372,16 @@ def refine_saddles(gray, points: np.ndarray, object_xy: np.ndarray, square_mm: f
     half = np.einsum("mij,mj->mi", np.abs(A[fits]), lim)  # px half-extents of the bounding box
     start = points[seen]
     q, steps, ok = start.copy(), np.zeros(len(seen), int), np.zeros(len(seen), bool)
-    # All corners iterate together, on a stack of blurred patches that hold each one's window
-    # with _SADDLE_MARGIN px to spare; a corner whose window moves out gets a new patch and goes on.
+    # Each corner iterates on a blurred patch that holds its window with _SADDLE_MARGIN px to
+    # spare; a corner whose window moves out gets a new patch and goes on.
     pending = np.arange(len(seen))
+    band = np.inf if band_mm is None else band_mm  # inf: every pixel is near an edge line
     while len(pending):
-        origin = np.floor(q[pending] - half[pending]).astype(int) - _SADDLE_MARGIN
+        origin = np.floor(q[pending] - half[pending]).astype(np.int64) - _SADDLE_MARGIN
         size = int((np.ceil(q[pending] + half[pending]) + 1 - origin).max()) + _SADDLE_MARGIN
         patches = _blurred_patches(blurred, origin, size)
-        live = np.arange(len(pending))  # rows of the stack still iterating on it
-        moved_out = []
-        while len(live):
-            c = pending[live]
-            box_lo = np.maximum(np.floor(q[c] - half[c]), 1).astype(int)
-            box_hi = np.minimum(np.ceil(q[c] + half[c]) + 1, [width - 1, height - 1]).astype(int)
-            failed = (box_hi <= box_lo).any(1)
-            out = ~failed & ((box_lo < origin[live]) | (box_hi > origin[live] + size)).any(1)
-            moved_out.extend(c[out])
-            live, c, box_lo, box_hi = (a[~failed & ~out] for a in (live, c, box_lo, box_hi))
-            if not len(live):
-                break
-            shift, solvable = _saddle_steps(patches, live, origin[live], q[c], A_inv[c],
-                                            lim[c], box_lo, box_hi, band_mm, (width, height))
-            q[c[solvable]] += shift[solvable]
-            steps[c] += 1
-            ok[c[solvable]] = np.linalg.norm(shift[solvable], axis=1) < 1e-4
-            live = live[solvable & ~ok[c] & (steps[c] < iterations)]
-        pending = np.array(moved_out, dtype=int)
+        pending = _saddle_fit(patches, np.arange(len(pending)), origin, size, pending, q, half,
+                              A_inv, lim, band, width, height, steps, ok, iterations)
     moved = np.linalg.norm(np.einsum("mij,mj->mi", A_inv, q - start), axis=1)
     refined[seen] = np.where((ok & (moved < 0.25 * square_mm))[:, None], q, np.nan)
     return refined
@@ -399,102 +422,120 @@ def _cut_patches(whole, origin, size):
     return patches
 
 
-def _saddle_steps(blurred, rows, origin, q, A_inv, lim, box_lo, box_hi, band_mm, image_size):
-    """One step of the saddle fit for M corners at once: shifts (M, 2) px and whether each
-    corner's normal matrix was well enough conditioned to solve (M,) bool.
-
-    ``blurred`` (K, S + 2, S + 2): ``_blurred_patches``, of which the M ``rows`` are the
-    corners' squares, with top-left pixels ``origin`` (M, 2); ``q`` (M, 2) the current
-    estimates; ``A_inv`` (M, 2, 2) px -> board mm; ``lim`` (M, 2) the window's half-extents in
-    mm; ``box_lo``, ``box_hi`` (M, 2) its bounding box (end exclusive) in px, inside the square.
-    """
-    width, height = image_size
-    # Only pixels whose mirror image through q is in the image too: a window cut by the image
-    # border stays point-symmetric, as the saddle is.
-    mirrored = np.minimum(q, [width - 1, height - 1] - q)
-    # The weight's phases, pi/2 at the window's sides: theta = pi/2 (A_inv p) / lim.
-    scale = 0.5 * np.pi * A_inv / lim[:, :, None]
-    band = (np.full(lim.shape, np.inf) if band_mm is None  # no band: every pixel is near
-            else 0.5 * np.pi * band_mm / lim)
-    sums = _saddle_sums(blurred, rows, origin, q, scale, mirrored, box_lo, box_hi, band)
-    normal = sums[:, [0, 1, 1, 2]].reshape(-1, 2, 2)
-    # sum w g g^T (p - q), the pixel p relative to the square's top-left.
-    rhs = sums[:, 3:] - (normal @ (q - origin)[:, :, None])[..., 0]
-    # The normal matrix [[a, b], [b, c]] is symmetric and positive semi-definite: its condition
-    # number is its eigenvalues' ratio, here in closed form (np.linalg.cond's batched SVD cost
-    # 0.75 ms of the 640 x 480 checkerboard's 11 ms a frame).
-    a, b, c = sums[:, 0], sums[:, 1], sums[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        largest = 0.5 * (a + c) + np.hypot(0.5 * (a - c), b)
-        smallest = (a * c - b * b) / largest  # the determinant over the other eigenvalue
-        solvable = (largest > 0) & (smallest * 1e6 >= largest)
-    shift = np.zeros_like(q)
-    shift[solvable] = np.linalg.solve(normal[solvable], rhs[solvable, :, None])[..., 0]
-    return shift, solvable
-
-
 # The fit's per-pixel work, compiled: one pass over each window per step, with no window-sized
 # arrays (in numpy, the gradient moments and the weights over every window cost most of a
-# 12 MP checkerboard's detection).  Each pixel's gradient, phases, masks and weight are
-# computed as defined below, term by term; the sums are taken in pixel order.
+# 12 MP checkerboard's detection), and each corner's steps in one loop (driven from numpy, a
+# step of all corners at once cost 1.8 ms of the 640 x 480 checkerboard's 9 ms a frame in
+# array bookkeeping).  Each pixel's gradient, phases, masks and weight are computed as defined
+# in ``_window_sums``, term by term; the sums are taken in pixel order.
 @numba.njit(cache=True, nogil=True)
-def _saddle_sums(blurred, rows, origin, q, scale, mirrored, box_lo, box_hi, band):
-    """(M, 5) sums over each window of w [gx gx, gx gy, gy gy, gx (gx x + gy y),
-    gy (gx x + gy y)]: (gx, gy) the central differences of the corner's blurred square, (x, y)
-    the pixel relative to its top-left, w = (cos theta_u cos theta_v)^2 with
-    theta_a = tx_a + ty_a, tx_a = scale[a, 0] (x - q_x) and ty_a = scale[a, 1] (y - q_y) (cos
-    of the sum as cos ty cos tx - sin ty sin tx, the row's and the column's factors); pixels
-    with |theta_a| > pi/2, or whose mirror through q is off the image, have no weight, nor
-    those where neither |theta_a| is within ``band[a]`` (near neither edge line; inf: no band)."""
+def _saddle_fit(patches, rows, origin, size, corners, q, half, A_inv, lim, band_mm, width,
+                height, steps, ok, iterations):
+    """Iterate the saddle fit of ``corners`` (indices into ``q`` (M, 2), ``half`` (M, 2) px
+    half-extents of each window's bounding box, ``A_inv`` (M, 2, 2) px -> board mm, ``lim``
+    (M, 2) the window's half-extents in mm, ``steps`` and ``ok`` (M,), all updated in place):
+    corner ``corners[r]``'s square of ``size`` px is ``patches[rows[r]]`` (``_blurred_patches``)
+    with top-left pixel ``origin[r]``.  A step moves q by the solution of
+    (sum w g g^T) shift = sum w g g^T (p - q); a corner stops when a step is under 1e-4 px
+    (``ok``), after ``iterations`` steps, when its normal matrix cannot be solved (condition
+    over 1e6) or its window leaves the image.  Returns the corners whose window left their
+    square, to go on with new patches."""
     half_pi = 0.5 * np.pi
-    out = np.zeros((len(q), 5))
-    for j in range(len(q)):
-        patch = blurred[rows[j]]
-        x0, y0, x1, y1 = box_lo[j, 0], box_lo[j, 1], box_hi[j, 0], box_hi[j, 1]
-        qx, qy = q[j, 0], q[j, 1]
-        mx, my = mirrored[j, 0], mirrored[j, 1]
-        s00, s01, s10, s11 = scale[j, 0, 0], scale[j, 0, 1], scale[j, 1, 0], scale[j, 1, 1]
-        band0, band1 = band[j, 0], band[j, 1]
-        # The columns' phases, their cosines and sines and the mirror rule, once per step.
-        tx0, tx1 = np.empty(x1 - x0), np.empty(x1 - x0)
-        c0, n0, c1, n1 = np.empty(x1 - x0), np.empty(x1 - x0), np.empty(x1 - x0), \
-            np.empty(x1 - x0)
-        mirror_x = np.empty(x1 - x0, np.bool_)
-        for k in range(x1 - x0):
-            dx = x0 + k - qx
-            tx0[k], tx1[k] = s00 * dx, s10 * dx
-            c0[k], n0[k] = math.cos(tx0[k]), math.sin(tx0[k])
-            c1[k], n1[k] = math.cos(tx1[k]), math.sin(tx1[k])
-            mirror_x[k] = abs(dx) <= mx
-        g00 = g01 = g11 = g0p = g1p = 0.0
-        for y in range(y0, y1):
-            dy = y - qy
-            if not abs(dy) <= my:
+    moved_out = np.empty(len(corners), np.int64)
+    n_out = 0
+    for r in range(len(corners)):
+        c = corners[r]
+        patch, ox, oy = patches[rows[r]], origin[r, 0], origin[r, 1]
+        while True:
+            x0 = int(max(math.floor(q[c, 0] - half[c, 0]), 1.0))
+            y0 = int(max(math.floor(q[c, 1] - half[c, 1]), 1.0))
+            x1 = int(min(math.ceil(q[c, 0] + half[c, 0]) + 1, width - 1))
+            y1 = int(min(math.ceil(q[c, 1] + half[c, 1]) + 1, height - 1))
+            if x1 <= x0 or y1 <= y0:
+                break  # the window left the image: not measured
+            if x0 < ox or y0 < oy or x1 > ox + size or y1 > oy + size:
+                moved_out[n_out] = c
+                n_out += 1
+                break
+            qx, qy = q[c, 0], q[c, 1]
+            # Only pixels whose mirror image through q is in the image too: a window cut by
+            # the image border stays point-symmetric, as the saddle is.
+            mx, my = min(qx, (width - 1) - qx), min(qy, (height - 1) - qy)
+            # The weight's phases, pi/2 at the window's sides: theta = pi/2 (A_inv p) / lim.
+            s00, s01 = half_pi * A_inv[c, 0, 0] / lim[c, 0], half_pi * A_inv[c, 0, 1] / lim[c, 0]
+            s10, s11 = half_pi * A_inv[c, 1, 0] / lim[c, 1], half_pi * A_inv[c, 1, 1] / lim[c, 1]
+            band0, band1 = half_pi * band_mm / lim[c, 0], half_pi * band_mm / lim[c, 1]
+            a, b, cc, rx, ry = _window_sums(patch, ox, oy, x0, y0, x1, y1, qx, qy, mx, my,
+                                            s00, s01, s10, s11, band0, band1)
+            # sum w g g^T (p - q), the pixel p relative to the square's top-left.
+            rx -= a * (qx - ox) + b * (qy - oy)
+            ry -= b * (qx - ox) + cc * (qy - oy)
+            steps[c] += 1
+            # The normal matrix [[a, b], [b, cc]] is symmetric and positive semi-definite: its
+            # condition number is its eigenvalues' ratio, in closed form.
+            largest = 0.5 * (a + cc) + math.hypot(0.5 * (a - cc), b)
+            det = a * cc - b * b
+            if not (largest > 0 and (det / largest) * 1e6 >= largest):
+                break
+            dx, dy = (cc * rx - b * ry) / det, (a * ry - b * rx) / det
+            q[c, 0] += dx
+            q[c, 1] += dy
+            ok[c] = math.sqrt(dx * dx + dy * dy) < 1e-4
+            if ok[c] or steps[c] >= iterations:
+                break
+    return moved_out[:n_out]
+
+
+@numba.njit(cache=True, nogil=True)
+def _window_sums(patch, ox, oy, x0, y0, x1, y1, qx, qy, mx, my, s00, s01, s10, s11, band0,
+                 band1):
+    """The sums over one window [x0, x1) x [y0, y1) of w [gx gx, gx gy, gy gy,
+    gx (gx x + gy y), gy (gx x + gy y)]: (gx, gy) the central differences of the blurred
+    ``patch`` (top-left pixel (ox, oy), one pixel of border), (x, y) the pixel relative to
+    (ox, oy), w = (cos theta_u cos theta_v)^2 with theta_a = tx_a + ty_a, tx_a = s_a0 (x - qx)
+    and ty_a = s_a1 (y - qy) (cos of the sum as cos ty cos tx - sin ty sin tx, the row's and the
+    column's factors); pixels with |theta_a| > pi/2, or farther from q than (mx, my) (whose
+    mirror through q is off the image), have no weight, nor those where neither |theta_a| is
+    within ``band_a`` (near neither edge line; inf: no band)."""
+    half_pi = 0.5 * np.pi
+    # The columns' phases, their cosines and sines and the mirror rule, once per step.
+    tx0, tx1 = np.empty(x1 - x0), np.empty(x1 - x0)
+    c0, n0, c1, n1 = np.empty(x1 - x0), np.empty(x1 - x0), np.empty(x1 - x0), np.empty(x1 - x0)
+    mirror_x = np.empty(x1 - x0, np.bool_)
+    for k in range(x1 - x0):
+        dx = x0 + k - qx
+        tx0[k], tx1[k] = s00 * dx, s10 * dx
+        c0[k], n0[k] = math.cos(tx0[k]), math.sin(tx0[k])
+        c1[k], n1[k] = math.cos(tx1[k]), math.sin(tx1[k])
+        mirror_x[k] = abs(dx) <= mx
+    g00 = g01 = g11 = g0p = g1p = 0.0
+    for y in range(y0, y1):
+        dy = y - qy
+        if not abs(dy) <= my:
+            continue
+        ty0, ty1 = s01 * dy, s11 * dy
+        cy0, ny0, cy1, ny1 = math.cos(ty0), -math.sin(ty0), math.cos(ty1), -math.sin(ty1)
+        py = y - oy
+        for x in range(x0, x1):
+            k = x - x0
+            if not mirror_x[k]:
                 continue
-            ty0, ty1 = s01 * dy, s11 * dy
-            cy0, ny0, cy1, ny1 = math.cos(ty0), -math.sin(ty0), math.cos(ty1), -math.sin(ty1)
-            py = y - origin[j, 1]
-            for x in range(x0, x1):
-                k = x - x0
-                if not mirror_x[k]:
-                    continue
-                a, b = tx0[k], tx1[k]
-                if not (a <= half_pi - ty0 and a >= -half_pi - ty0
-                        and b <= half_pi - ty1 and b >= -half_pi - ty1):
-                    continue
-                if not ((a <= band0 - ty0 and a >= -band0 - ty0)
-                        or (b <= band1 - ty1 and b >= -band1 - ty1)):
-                    continue
-                w = (cy0 * c0[k] + ny0 * n0[k]) * (cy1 * c1[k] + ny1 * n1[k])
-                w *= w
-                px = x - origin[j, 0]
-                gx = 0.5 * (patch[py + 1, px + 2] - patch[py + 1, px])
-                gy = 0.5 * (patch[py + 2, px + 1] - patch[py, px + 1])
-                gp = gx * px + gy * py
-                g00 += w * (gx * gx)
-                g01 += w * (gx * gy)
-                g11 += w * (gy * gy)
-                g0p += w * (gx * gp)
-                g1p += w * (gy * gp)
-        out[j, 0], out[j, 1], out[j, 2], out[j, 3], out[j, 4] = g00, g01, g11, g0p, g1p
-    return out
+            a, b = tx0[k], tx1[k]
+            if not (a <= half_pi - ty0 and a >= -half_pi - ty0
+                    and b <= half_pi - ty1 and b >= -half_pi - ty1):
+                continue
+            if not ((a <= band0 - ty0 and a >= -band0 - ty0)
+                    or (b <= band1 - ty1 and b >= -band1 - ty1)):
+                continue
+            w = (cy0 * c0[k] + ny0 * n0[k]) * (cy1 * c1[k] + ny1 * n1[k])
+            w *= w
+            px = x - ox
+            gx = 0.5 * (patch[py + 1, px + 2] - patch[py + 1, px])
+            gy = 0.5 * (patch[py + 2, px + 1] - patch[py, px + 1])
+            gp = gx * px + gy * py
+            g00 += w * (gx * gx)
+            g01 += w * (gx * gy)
+            g11 += w * (gy * gy)
+            g0p += w * (gx * gp)
+            g1p += w * (gy * gp)
+    return g00, g01, g11, g0p, g1p

@@ -14,8 +14,8 @@ import pytest
 from stereo_bench.core.patterns import AsymmetricCircles, Checkerboard, SymmetricCircles
 from stereo_bench.detect import discs
 from stereo_bench.detect.boards import _find_circle_grid, _SearchImage
-from stereo_bench.detect.saddle import (_Blurred, _blurred_patches, _leave_one_out, _saddle_steps,
-                                        local_affines, nearest_mm)
+from stereo_bench.detect.saddle import (_bilinear_in_boxes, _Blurred, _blurred_patches,
+                                        _leave_one_out, _saddle_fit, local_affines, nearest_mm)
 
 BOUND_PX = 1e-6
 H = (np.array([[0.9, 0.2, 60.0], [-0.12, 0.85, 90.0], [0.0, 0.0, 1.0]])
@@ -116,9 +116,12 @@ def test_saddle_steps_of_all_corners_equal_one_corner_at_a_time(band_mm):
     stack = _blurred_patches(_Blurred(gray, sigma, 0), np.concatenate([origin[:1], origin[::-1]]),
                              size)
     rows = np.arange(len(origin), 0, -1)
-    shift, solvable = _saddle_steps(stack, rows, origin, start, np.linalg.inv(A), lim, box_lo,
-                                    box_hi, band_mm, (640, 480))
-    assert solvable.all()
+    q, steps, ok = start.copy(), np.zeros(len(A), np.int64), np.zeros(len(A), bool)
+    moved_out = _saddle_fit(stack, rows, origin, size, np.arange(len(A)), q, half,
+                            np.linalg.inv(A), lim, np.inf if band_mm is None else band_mm, 640,
+                            480, steps, ok, 1)
+    assert len(moved_out) == 0 and np.all(steps == 1)  # one step each, every one solved
+    shift = q - start
     blurred = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), sigma).astype(float)
     gradient = np.zeros((2,) + gray.shape)
     gradient[0, :, 1:-1] = 0.5 * (blurred[:, 2:] - blurred[:, :-2])
@@ -218,3 +221,28 @@ def test_local_fits_of_all_points_equal_one_point_at_a_time(pattern):
             fitted = np.isfinite(ref)
             assert np.all(np.abs(ours[fitted] - ref[fitted])
                           <= 1e-9 * np.maximum(np.abs(ref[fitted]), 1.0)), trial
+
+
+def test_samples_read_from_the_whole_blur_equal_opencvs_remap_of_each_box():
+    """The print's extents sample a small image's boxes in one compiled pass: cv2.remap's
+    bilinear values on each box alone, NaN where a tap leaves the box, over boxes cut by every
+    border and samples on and between the 1/64 px grid; equal to float32 rounding (bit for bit
+    where OpenCV's lerps are fused multiply-adds, as the compiled pass computes them)."""
+    gray, _ = warped(Checkerboard(), 1.8)
+    whole = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), 1.2)
+    rng = np.random.default_rng(7)
+    lo = np.column_stack([rng.integers(-20, 640, 400), rng.integers(-20, 480, 400)])
+    hi = lo + rng.integers(1, 60, (400, 2))
+    xy = lo[:, None] - 2 + rng.random((400, 80, 2)) * (hi - lo + 3)[:, None]
+    xy[::3] = np.round(xy[::3] * 64) / 64
+    start, end = np.maximum(lo, 0), np.minimum(hi, [640, 480])
+    inside = np.all(end > start, axis=1)
+    local = (xy - start[:, None]).astype(np.float32)
+    ours = _bilinear_in_boxes(whole, start, end, inside, local)
+    assert inside.sum() > 300 and np.isnan(ours[~inside]).all()
+    for r in np.flatnonzero(inside):
+        box = whole[start[r, 1]:end[r, 1], start[r, 0]:end[r, 0]]
+        ref = cv2.remap(box, local[r, :, :1], local[r, :, 1:], cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan).ravel()
+        assert np.array_equal(np.isnan(ours[r]), np.isnan(ref)), r
+        assert np.nanmax(np.abs(ours[r] - ref), initial=0.0) <= np.spacing(np.float32(255)), r
