@@ -288,3 +288,43 @@ def test_a_corner_that_breaks_the_local_grid_is_dropped():
             kept = drop_grid_outliers(obj, bad, 15.0)
             assert np.isnan(kept[i]).all()
             assert np.isfinite(np.delete(kept, i, axis=0)).all()
+
+
+def test_markers_searched_around_the_board_are_those_of_the_whole_image():
+    """detect_markers searches only the box around the pixels that differ from a uniform
+    surround: the same markers, corners and order as OpenCV's search of the whole image, plain
+    and with the mirrored dictionary in both polarities, for a board small in the middle, at
+    each border and corner, partly off the image, large (the whole image searched), and none
+    in a uniform image."""
+    from stereo_bench.detect.boards import _with_mirrored_markers, detect_markers
+
+    pattern = Charuco()
+    texture = pattern.texture(2.0)
+    th, tw = texture.shape
+    board = np.float32([[0, 0], [tw, 0], [tw, th], [0, th]])
+    cases = 0
+    for cx, cy, scale, turn in [(960, 700, 0.9, 10), (140, 120, 0.7, -25), (1800, 1300, 0.8, 40),
+                                (60, 700, 1.0, 5), (960, 1400, 0.9, 0), (960, 700, 3.2, 15),
+                                (1700, 90, 0.6, 70)]:
+        angle = math.radians(turn)
+        spin = scale * np.array([[math.cos(angle), -math.sin(angle)],
+                                 [math.sin(angle), math.cos(angle)]])
+        quad = ((board - [tw / 2, th / 2]) @ spin.T + [cx, cy]).astype(np.float32)
+        quad[2] += [25 * scale, -15 * scale]  # perspective
+        H = cv2.getPerspectiveTransform(board, quad)
+        image = cv2.warpPerspective(texture, H, (1920, 1440), flags=cv2.INTER_AREA,
+                                    borderMode=cv2.BORDER_CONSTANT, borderValue=112)
+        for dictionary, inverted in [(cv2.aruco.getPredefinedDictionary(
+                getattr(cv2.aruco, pattern.dictionary)), False),
+                (_with_mirrored_markers(pattern.dictionary), True), ]:
+            params = cv2.aruco.DetectorParameters()
+            params.detectInvertedMarker = inverted
+            corners, ids, _ = cv2.aruco.ArucoDetector(dictionary, params).detectMarkers(image)
+            ours, our_ids = detect_markers(image, dictionary, inverted)
+            assert np.array_equal(our_ids, ids) and len(ours) == len(corners)
+            assert all(np.array_equal(a, b) for a, b in zip(ours, corners))
+            cases += len(ids)
+    assert cases > 30  # markers were found, not only their absence compared
+    uniform = np.full((1440, 1920), 112, np.uint8)
+    corners, ids = detect_markers(uniform, _with_mirrored_markers(pattern.dictionary), True)
+    assert corners == () and len(ids) == 0
