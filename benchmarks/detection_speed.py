@@ -146,9 +146,9 @@ def main(argv=None) -> None:
     parser.add_argument("--repeat", type=int, default=1, help="detect each frame this many "
                         "times with each detector (a small camera's few ms vary from run to run)")
     args = parser.parse_args(argv)
-    if args.frames < 1 or args.repeat < 1:
-        raise ValueError(f"--frames, --repeat: expected positive counts, got {args.frames} and "
-                         f"{args.repeat}")
+    for option, value in (("--frames", args.frames), ("--repeat", args.repeat)):
+        if value < 1:
+            parser.error(f"{option}: expected a positive count, got {value}")
 
     with tempfile.TemporaryDirectory() as tmp, (
             revision_detector(args.baseline) if args.baseline else nullcontext()) as baseline:
