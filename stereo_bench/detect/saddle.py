@@ -36,29 +36,41 @@ def _leave_one_out(object_xy: np.ndarray, points: np.ndarray, radius_mm: float) 
 
 
 @numba.njit(cache=True, nogil=True)
+def _neighbours(object_xy, points, i, radius, near):
+    """How many points are point i's neighbours, their indices in ``near``: seen (finite), not
+    i, within ``radius`` board mm of it; 0 when point i is not seen itself."""
+    if not (np.isfinite(points[i, 0]) and np.isfinite(points[i, 1])):
+        return 0
+    k = 0
+    for j in range(len(points)):
+        if j == i or not (np.isfinite(points[j, 0]) and np.isfinite(points[j, 1])):
+            continue
+        dx, dy = object_xy[j, 0] - object_xy[i, 0], object_xy[j, 1] - object_xy[i, 1]
+        if math.sqrt(dx * dx + dy * dy) <= radius:
+            near[k] = j
+            k += 1
+    return k
+
+
+@numba.njit(cache=True, nogil=True)
 def _leave_one_out_fits(object_xy, points, radius):
     n = len(points)
     out = np.full(n, np.nan)
+    near = np.empty(n, np.int64)
     for i in range(n):
-        if not (np.isfinite(points[i, 0]) and np.isfinite(points[i, 1])):
+        count = _neighbours(object_xy, points, i, radius, near)
+        if count < 3:  # an affine map needs three
             continue
         # Normal equations of [offset x, offset y, 1] -> px (rows: d/dx, d/dy, value at i).
-        normal, rhs, count = np.zeros((3, 3)), np.zeros((3, 2)), 0
-        for j in range(n):
-            if j == i or not (np.isfinite(points[j, 0]) and np.isfinite(points[j, 1])):
-                continue
-            dx, dy = object_xy[j, 0] - object_xy[i, 0], object_xy[j, 1] - object_xy[i, 1]
-            if not math.sqrt(dx * dx + dy * dy) <= radius:
-                continue
-            x = (dx, dy, 1.0)
+        normal, rhs = np.zeros((3, 3)), np.zeros((3, 2))
+        for m in range(count):
+            j = near[m]
+            x = (object_xy[j, 0] - object_xy[i, 0], object_xy[j, 1] - object_xy[i, 1], 1.0)
             for a in range(3):
                 for b in range(3):
                     normal[a, b] += x[a] * x[b]
                 rhs[a, 0] += x[a] * points[j, 0]
                 rhs[a, 1] += x[a] * points[j, 1]
-            count += 1
-        if count < 3:  # an affine map needs three
-            continue
         sol = _pseudo_inverse_3x3(normal) @ rhs
         lx, ly = sol[2, 0] - points[i, 0], sol[2, 1] - points[i, 1]
         out[i] = math.sqrt(lx * lx + ly * ly) / _spectral_norm(sol[0, 0], sol[0, 1], sol[1, 0],
@@ -137,16 +149,7 @@ def _local_affine_fits(object_xy, points, radius):
     misfit = np.full(n, np.nan)
     near = np.empty(n, np.int64)
     for i in range(n):
-        if not (np.isfinite(points[i, 0]) and np.isfinite(points[i, 1])):
-            continue
-        k = 0
-        for j in range(n):
-            if j == i or not (np.isfinite(points[j, 0]) and np.isfinite(points[j, 1])):
-                continue
-            dx, dy = object_xy[j, 0] - object_xy[i, 0], object_xy[j, 1] - object_xy[i, 1]
-            if math.sqrt(dx * dx + dy * dy) <= radius:
-                near[k] = j
-                k += 1
+        k = _neighbours(object_xy, points, i, radius, near)
         # The offsets' Gram matrix [[a, b], [b, c]], and its determinant as the sum of the
         # squared cross products of pairs (Lagrange's identity), free of the cancellation of
         # a c - b^2: collinear neighbours give rounding-sized singular values, as in an SVD.
