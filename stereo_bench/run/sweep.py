@@ -235,10 +235,17 @@ def run_sweep(sweep: Sweep, out: Path, workers: int = 1, progress=None,
             result["comparisons"] = comparisons(result)
             # The curves' figures on the workers, idle by now and with matplotlib loaded: the
             # paper's grid has 15, 9 s one after another in this process.
-            client.gather(client.map(
-                plot_sweep_curve, result["curves"],
-                [out / curve["figure"] for curve in result["curves"]],
-                key=[f"sweep-curve-{k}-{run_id}" for k in range(len(result["curves"]))]))
+            paths = [out / curve["figure"] for curve in result["curves"]]
+            try:
+                client.gather(client.map(
+                    plot_sweep_curve, result["curves"], paths,
+                    key=[f"sweep-curve-{k}-{run_id}" for k in range(len(paths))]))
+                drawn = True
+            except Exception:  # noqa: BLE001 — a lost cluster must not cost the sweep's tables
+                drawn = False
+        if not drawn:
+            for curve, path in zip(result["curves"], paths):
+                plot_sweep_curve(curve, path)
         write_json(out / "sweep.json", result)
         text = sweep_markdown(result) + stats_markdown(result)
         write_text(out / "sweep.md", text)

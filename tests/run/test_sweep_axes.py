@@ -226,3 +226,27 @@ def test_a_small_sweep_gives_curves_and_paired_differences_of_its_trials(tmp_pat
     assert "tiny_checkerboard_noisy_noise_sigma-2: configuration failed" in md
     # The configurations that ran have their own complete run directories.
     assert all((out / name / "report.md").is_file() for name in ok)
+
+
+def test_the_curves_are_drawn_here_when_the_cluster_cannot_draw_them(tmp_path, monkeypatch):
+    """The curves' figures go to the cluster's workers once every configuration is done; a
+    cluster lost by then must not cost the sweep its tables and figures: they are drawn in the
+    command's own process instead."""
+    from distributed import Client
+
+    mapped = Client.map
+
+    def lost_on_curves(self, func, *args, **kwargs):
+        if getattr(func, "__name__", "") == "plot_sweep_curve":
+            raise OSError("the cluster went away")
+        return mapped(self, func, *args, **kwargs)
+
+    monkeypatch.setattr(Client, "map", lost_on_curves)
+    rig = tiny_rig(tmp_path, noisy=True)
+    grid = grid_file(tmp_path, rigs=[rig.name], axes={NOISE: [1, 2]}, trials=1)
+    out = tmp_path / "out"
+    assert main(["sweep", str(grid), "--out", str(out), "--workers", "1"]) == 0
+    result = json.loads((out / "sweep.json").read_text())
+    assert result["failed"] == []
+    [curve] = result["curves"]
+    assert (out / curve["figure"]).stat().st_size > 10_000
