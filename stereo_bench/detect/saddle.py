@@ -267,7 +267,7 @@ def _print_extents(blurred: _Blurred, q, A, axis, sign, square_mm, perp_mm,
         inside = np.all(end > start, axis=1)
         values = _bilinear_in_boxes(blurred.whole, start, end, inside,
                                     (xy - start[:, None, :]).astype(np.float32))
-    else:
+    else:  # each box blurred alone, read by the same kernel
         values = np.full(xy.shape[:2], np.nan, np.float32)
         inside = np.zeros(n, bool)
         for r in range(n):
@@ -275,9 +275,10 @@ def _print_extents(blurred: _Blurred, q, A, axis, sign, square_mm, perp_mm,
             if box is None:
                 continue
             patch, origin = box
-            local = (xy[r] - origin).astype(np.float32)
-            values[r] = cv2.remap(patch, local[:, :1], local[:, 1:], cv2.INTER_LINEAR,
-                                  borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan).ravel()
+            values[r] = _bilinear_in_boxes(
+                np.ascontiguousarray(patch), np.zeros((1, 2), np.int64),
+                np.array([patch.shape[::-1]], np.int64), np.ones(1, np.bool_),
+                (xy[r] - origin).astype(np.float32)[None])[0]
             inside[r] = True
     contrast = np.abs(values[:, :samples] - values[:, samples:])
     reference = np.median(contrast[:, t <= 0.3], axis=1)
@@ -294,7 +295,8 @@ def _bilinear_in_boxes(image, start, end, inside, local):
     the box [start, end) alone: NaN where a tap is off the box, and NaN rows where not
     ``inside``.  Each value is two lerps along x and one along y, each a fused multiply-add
     (OpenCV's, on this machine's instructions; done here in float64, where the float32 product
-    is exact): equal to cv2.remap's bit for bit (tests/detect/test_batched.py)."""
+    is exact): equal to cv2.remap's bit for bit (tests/detect/test_batched.py), and the same on
+    every machine.  Both ways ``_print_extents`` cuts its boxes read them with it."""
     n, samples = local.shape[0], local.shape[1]
     out = np.full((n, samples), np.nan, np.float32)
     for r in range(n):
