@@ -5,6 +5,7 @@ ChArUco; every point then measured by the saddle fit or the disc centroid.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -57,6 +58,10 @@ class Detection:
     ids: np.ndarray
     found: bool
     error: str | None = None
+    #: Not found, but the board itself was read in the image as searched (ChArUco: two or more
+    #: of its own markers, too few corners between them): its other polarity and mirror image
+    #: need no search.
+    board_seen: bool = False
 
 
 def failed_detection(pattern: Pattern, reason: str) -> Detection:
@@ -106,13 +111,15 @@ def detect(image: np.ndarray, pattern: Pattern, method: str | None = None,
     if charuco and not in_view and not _any_marker_seen(search.image, pattern):
         return failed_detection(pattern, NO_MARKER)
     found = _detect_in(first, search, pattern, method)
-    if found.found:
+    if found.found or found.board_seen:
         return found
     if charuco and in_view and not _any_marker_seen(search.image, pattern):
         return found
     other = _detect_in(255 - first, _search_image(255 - first, pattern), pattern, method)
-    if other.found or pattern.kind != "charuco":
-        return other if other.found else found
+    if other.found or other.board_seen:
+        return other
+    if not charuco:
+        return found
     # A one-sided ChArUco print seen from behind (through thin paper or acrylic) is its mirror
     # image, whose markers read as no id; mirrored back, each corner keeps its id, so it is the
     # same board point. A chessboard or circle grid mirrored is found in the image as it is.
@@ -123,6 +130,8 @@ def detect(image: np.ndarray, pattern: Pattern, method: str | None = None,
             points = back.points.copy()
             points[:, 0] = gray.shape[1] - 1 - points[:, 0]  # pixel centres: x -> W - 1 - x
             return Detection(points, back.ids, True)
+        if back.board_seen:
+            return back
     return found
 
 
@@ -384,8 +393,14 @@ def _detect_charuco(gray, search: _SearchImage, pattern: Charuco) -> Detection:
         gray, markerCorners=markers, markerIds=marker_ids)
     if ids is None or len(ids) < MIN_CHARUCO_CORNERS:
         seen = 0 if ids is None else len(ids)
-        return failed_detection(pattern, f"only {seen} ChArUco corners ({len(marker_ids)} "
-                                         f"markers) found, need {MIN_CHARUCO_CORNERS}")
+        failed = failed_detection(pattern, f"only {seen} ChArUco corners ({len(marker_ids)} "
+                                           f"markers) found, need {MIN_CHARUCO_CORNERS}")
+        # Two of the side's own ids place the board in this polarity, unmirrored (a mirrored or
+        # inverted marker reads as no id, or as one id at random of the dictionary's): the
+        # searches of the other polarity and the mirror image would find nothing. A fifth of
+        # the wide camera's frames see the board so, each of those searches 14 ms there.
+        own = np.isin(marker_ids, side.marker_ids()).sum()
+        return dataclasses.replace(failed, board_seen=bool(own >= 2))
     points = np.full((len(pattern.ids()), 2), np.nan)
     points[ids.ravel()] = corners.reshape(-1, 2)
     points = refine_saddles(gray, points, side.object_points()[:, :2], side.square_mm,

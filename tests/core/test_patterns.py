@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
+from stereo_bench.detect import boards
 from stereo_bench.detect.boards import _any_marker_seen, detect
 from stereo_bench.core.patterns import (PATTERNS, AsymmetricCircles, Charuco, Checkerboard,
                                         SymmetricCircles, pattern_from_config)
@@ -272,3 +273,25 @@ def test_factory_rejects_unknown_kind_and_field():
 def test_invalid_geometry_names_the_field(kind, overrides, field):
     with pytest.raises(ValueError, match=field):
         pattern_from_config(kind, **overrides)
+
+
+def test_a_charuco_board_seen_with_too_few_corners_ends_the_search(monkeypatch):
+    """A board read in one polarity (two of its markers or more) but with too few corners between
+    them is not looked for again in the other polarity or mirrored, and the failure says what
+    was seen: one marker search as printed; seen inverted or mirrored, the searches stop at the
+    print it is (each search before it, and the one that tells whether any marker is there)."""
+    board, px_per_mm = Charuco(), 6.61
+    image = view(board, px_per_mm, 1.0)
+    corner = round((2 * board.square_mm + board.margin_mm) * px_per_mm)  # two squares a side
+    covered = np.full_like(image, 255)
+    covered[:corner, :corner] = image[:corner, :corner]
+    searches = []
+    real = boards.detect_markers
+    monkeypatch.setattr(boards, "detect_markers",
+                        lambda *args, **kwargs: searches.append(1) or real(*args, **kwargs))
+    for seen, expected in ((covered, 1), (255 - covered, 3), (covered[:, ::-1], 4)):
+        searches.clear()
+        found = detect(np.ascontiguousarray(seen), board)
+        assert not found.found and found.board_seen
+        assert found.error == "only 1 ChArUco corners (2 markers) found, need 6"
+        assert np.isnan(found.points).all() and len(searches) == expected
