@@ -297,9 +297,10 @@ def test_markers_searched_around_the_board_are_those_of_the_whole_image():
     each border and corner, partly off the image, large (the whole image searched), and none
     in a uniform image.  (Markers of a few pixels a cell can decode differently with the
     image's origin, in OpenCV's own search too: these are 2 px a cell or more.)"""
-    from stereo_bench.detect.boards import _with_mirrored_markers, detect_markers
+    from stereo_bench.detect.boards import _marker_rows, _with_mirrored_markers, detect_markers
 
     pattern = Charuco()
+    mirrored = _with_mirrored_markers(pattern.dictionary, _marker_rows(pattern))
     texture = pattern.texture(2.0)
     th, tw = texture.shape
     board = np.float32([[0, 0], [tw, 0], [tw, th], [0, th]])
@@ -317,7 +318,7 @@ def test_markers_searched_around_the_board_are_those_of_the_whole_image():
                                     borderMode=cv2.BORDER_CONSTANT, borderValue=112)
         for dictionary, inverted in [(cv2.aruco.getPredefinedDictionary(
                 getattr(cv2.aruco, pattern.dictionary)), False),
-                (_with_mirrored_markers(pattern.dictionary), True), ]:
+                (mirrored, True), ]:
             params = cv2.aruco.DetectorParameters()
             params.detectInvertedMarker = inverted
             corners, ids, _ = cv2.aruco.ArucoDetector(dictionary, params).detectMarkers(image)
@@ -327,5 +328,34 @@ def test_markers_searched_around_the_board_are_those_of_the_whole_image():
             cases += len(ids)
     assert cases > 30  # markers were found, not only their absence compared
     uniform = np.full((1440, 1920), 112, np.uint8)
-    corners, ids = detect_markers(uniform, _with_mirrored_markers(pattern.dictionary), True)
+    corners, ids = detect_markers(uniform, mirrored, True)
     assert corners == () and len(ids) == 0
+
+
+def test_a_boards_markers_are_read_alike_by_the_first_markers_of_its_dictionary(wide):
+    """The search reads only the first markers of the dictionary, up to the board's largest id:
+    OpenCV takes a candidate for the first marker within the correction distance, so the
+    board's markers are those the whole dictionary reads, in the same order, with the same
+    corners (the wide camera's views, enlarged as the search enlarges them); a board whose ids
+    lie beyond them is not read at all."""
+    from stereo_bench.detect.boards import _SearchImage, _first_markers, _marker_rows
+
+    pattern = Charuco()
+    whole = pattern.aruco_dictionary()
+    first = _first_markers(pattern.dictionary, _marker_rows(pattern))
+    assert _marker_rows(pattern) == 54 and len(whole.bytesList) == 250
+    read = 0
+    for view in VIEWS:
+        image = _SearchImage.of(render(wide, pattern, view)[0], 1920).image
+        corners, ids, _ = cv2.aruco.ArucoDetector(whole).detectMarkers(image)
+        ours, our_ids, _ = cv2.aruco.ArucoDetector(first).detectMarkers(image)
+        board = [k for k, i in enumerate(ids.ravel()) if i < 54]
+        assert np.array_equal(our_ids.ravel(), ids.ravel()[board])
+        assert all(np.array_equal(ours[j], corners[k]) for j, k in enumerate(board))
+        read += len(board)
+    assert read > 100
+    beyond = Charuco(marker_id_offset=54)  # ids 54-107
+    image = _SearchImage.of(render(wide, beyond, VIEWS[0])[0], 1920).image
+    assert len(cv2.aruco.ArucoDetector(whole).detectMarkers(image)[0]) > 30
+    assert len(cv2.aruco.ArucoDetector(first).detectMarkers(image)[0]) == 0
+    assert _marker_rows(Charuco(two_sided=True)) == 108
