@@ -39,6 +39,11 @@ from ..scene.rig import ground_axes, world_up  # noqa: E402
 from ..io.rundir import RunPaths, TrialPaths  # noqa: E402
 from ..core.files import read_arrays  # noqa: E402
 
+#: Pixels per inch of every figure, made at the resolution it is saved at: the layout then
+#: measures its text at the size it is drawn (at another resolution the draw measures it all
+#: again: a tenth of a sweep configuration's figure time).
+DPI = 110
+
 
 def _bars(ax, agg_rows: dict, column: str, title: str, trials: int) -> None:
     """One metric per method: bars with their value written on them, on a log scale when the
@@ -65,7 +70,8 @@ def plot_metrics(agg: dict, path: Path) -> Path:
     n = len(panels) * len(cams) + (1 if "rig" in agg else 0)
     cols = min(n, 6)  # a studio's many cameras wrap onto rows
     lines = -(-n // cols)
-    fig, axes = plt.subplots(lines, cols, figsize=(3.2 * cols, 3.4 * lines), squeeze=False)
+    fig, axes = plt.subplots(lines, cols, dpi=DPI, figsize=(3.2 * cols, 3.4 * lines),
+                             squeeze=False)
     axes = axes.ravel()
     for ax in axes[n:]:
         ax.set_visible(False)
@@ -81,7 +87,7 @@ def plot_metrics(agg: dict, path: Path) -> Path:
                  else "one trial: no spread to show (run --trials N for error bars)",
                  fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    fig.savefig(path, dpi=DPI, bbox_inches="tight")
     plt.close(fig)
     return path
 
@@ -106,7 +112,8 @@ def plot_residuals(trial: TrialPaths, ds: Dataset, methods: list[str], path: Pat
     cams = ds.cameras
     cols = min(len(cams), 4)
     lines = -(-len(cams) // cols)
-    fig, axes = plt.subplots(lines, cols, figsize=(5.2 * cols, 3.4 * lines), squeeze=False)
+    fig, axes = plt.subplots(lines, cols, dpi=DPI, figsize=(5.2 * cols, 3.4 * lines),
+                             squeeze=False)
     for ax in axes.ravel()[len(cams):]:
         ax.set_visible(False)
     for ax, cam in zip(axes.ravel(), cams):
@@ -124,7 +131,7 @@ def plot_residuals(trial: TrialPaths, ds: Dataset, methods: list[str], path: Pat
         else:
             ax.set_title(f"{cam.name}: no method calibrated it", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    fig.savefig(path, dpi=DPI, bbox_inches="tight")
     plt.close(fig)
     return path
 
@@ -150,7 +157,7 @@ def plot_trajectory(rig, path: Path, session: bool = False) -> Path:
     """The board's path and the cameras (``rig``: a rig.Rig, of a dataset or a rig file)."""
     basis, labels = _world_axes(rig.cameras)
     pts = rig.board_points_world() @ basis.T
-    fig = plt.figure(figsize=(6, 5))
+    fig = plt.figure(dpi=DPI, figsize=(6, 5))
     ax = fig.add_subplot(projection="3d")
     centre = pts.mean(1)
     ax.plot(*centre.T, "-", color="tab:blue", lw=1, label="board centre")
@@ -182,7 +189,7 @@ def plot_trajectory(rig, path: Path, session: bool = False) -> Path:
     ax.set_title(f"board trajectory ({kind}) and cameras", fontsize=9)
     ax.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    fig.savefig(path, dpi=DPI, bbox_inches="tight")
     plt.close(fig)
     return path
 
@@ -202,7 +209,7 @@ def plot_studio(trial: TrialPaths, ds: Dataset, path: Path) -> Path:
     dets = [CameraDetections.load(trial.detection(c.name)) for c in ds.cameras]
     in_view = ds.ground_truth.visible.sum(axis=2) >= MIN_POINTS
     detected = np.stack([d.found for d in dets])
-    fig, (top, raster) = plt.subplots(1, 2, figsize=(12, 4.8),
+    fig, (top, raster) = plt.subplots(1, 2, dpi=DPI, figsize=(12, 4.8),
                                       gridspec_kw={"width_ratios": [1, 1.6]})
     sc = top.scatter(centre[walk, 0], centre[walk, 1], c=np.flatnonzero(walk), s=8,
                      cmap="viridis", label="board centre, walk")
@@ -237,7 +244,7 @@ def plot_studio(trial: TrialPaths, ds: Dataset, path: Path) -> Path:
     raster.set_title("which camera saw the board when (lines: walk | close-ups of each "
                      "camera)", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    fig.savefig(path, dpi=DPI, bbox_inches="tight")
     plt.close(fig)
     return path
 
@@ -264,8 +271,8 @@ def plot_projection_maps(trial: TrialPaths, ds: Dataset, methods: list[str],
         hi = max(max(np.percentile(f, 99) for f in finite), 1.01 * lo) if finite else 1.0
         norm = matplotlib.colors.LogNorm(lo, hi, clip=True)
         cmap = plt.get_cmap("magma").with_extremes(bad="0.6")
-        fig, axes = plt.subplots(1, len(ests), figsize=(3.6 * len(ests), 3.3), squeeze=False,
-                                 layout="constrained")
+        fig, axes = plt.subplots(1, len(ests), dpi=DPI, figsize=(3.6 * len(ests), 3.3),
+                                 squeeze=False, layout="constrained")
         for ax, (m, diff) in zip(axes[0], maps.items()):
             valid = np.isfinite(diff)
             im = ax.imshow(diff, extent=(0, cam.width - 1, cam.height - 1, 0), cmap=cmap,
@@ -283,7 +290,7 @@ def plot_projection_maps(trial: TrialPaths, ds: Dataset, methods: list[str],
         fig.suptitle(f"{cam.name}: |estimate - truth| projection difference over the image",
                      fontsize=9)
         path = folder / f"projection_difference_{cam.name}.png"
-        fig.savefig(path, dpi=110)
+        fig.savefig(path, dpi=DPI)
         plt.close(fig)
         paths.append(path)
     return paths
@@ -391,7 +398,7 @@ def plot_capture_camera(results: dict, est, frame_names: list[str], path: Path) 
     cam, obs = est.result.camera, est.obs
     entry = results["calibration"][primary_method(results, cam.name)][cam.name]
     diag = entry["diagnostics"]
-    fig, axes = plt.subplots(2, 2, figsize=(10, 7.2))
+    fig, axes = plt.subplots(2, 2, dpi=DPI, figsize=(10, 7.2))
     ax = axes[0, 0]
     views = diag["views"]
     flagged = set(views["flagged"])
@@ -469,7 +476,7 @@ def plot_capture_camera(results: dict, est, frame_names: list[str], path: Path) 
     ax.set_ylabel("v (px)")
     fig.suptitle(f"{cam.name}: {primary_method(results, cam.name)}", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=DPI)
     plt.close(fig)
     return path
 
@@ -505,7 +512,7 @@ def plot_sweep_curve(curve: dict, path: Path) -> Path:
     cols = min(len(metrics), 2)
     rows = -(-len(metrics) // cols)
     many = max(len(m["lines"]) for m in metrics) > 6  # room for legends beside the panels
-    fig, axes = plt.subplots(rows, cols, figsize=((5.2 + 2.6 * many) * cols, 3.8 * rows),
+    fig, axes = plt.subplots(rows, cols, dpi=DPI, figsize=((5.2 + 2.6 * many) * cols, 3.8 * rows),
                              squeeze=False)
     for ax in axes.ravel()[len(metrics):]:
         ax.set_visible(False)
@@ -565,7 +572,7 @@ def plot_sweep_curve(curve: dict, path: Path) -> Path:
     fig.suptitle(f"{held}: mean over trials, 95 % Student-t interval", fontsize=9)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    fig.savefig(path, dpi=DPI, bbox_inches="tight")
     plt.close(fig)
     return path
 
@@ -585,8 +592,8 @@ def plot_compare(report: dict, path: Path) -> Path:
     if costs:
         panels.append(("pose", "pose cost (mm MPJPE)"))
         rows["pose"] = {n: costs.get(n, {}) for n in table}
-    fig, axes = plt.subplots(1, len(panels), figsize=(3.3 * len(panels), 0.45 * len(table) + 1.6),
-                             squeeze=False)
+    fig, axes = plt.subplots(1, len(panels), dpi=DPI,
+                             figsize=(3.3 * len(panels), 0.45 * len(table) + 1.6), squeeze=False)
     names = list(table)
     seeds = len(report["seeds"])
     labels = [f"{n} ({table[n]['seeds']}/{seeds})" for n in names]
@@ -612,7 +619,7 @@ def plot_compare(report: dict, path: Path) -> Path:
                  f"mean and 95 % interval over the seeds each tool calibrated (of {seeds})",
                  fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    fig.savefig(path, dpi=DPI, bbox_inches="tight")
     plt.close(fig)
     return path
 
@@ -626,7 +633,7 @@ def plot_study(curves: list[dict], share: float, path: Path) -> Path:
     from scipy import stats
 
     markers = "osD^v<>pX*h"
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
+    fig, axes = plt.subplots(1, 2, dpi=DPI, figsize=(12, 4.6))
     methods = list(dict.fromkeys(p["method"] for c in curves for p in c["points"]))
     for ci, curve in enumerate(curves):
         colour = f"C{ci}"
@@ -674,6 +681,6 @@ def plot_study(curves: list[dict], share: float, path: Path) -> Path:
                       f"reaches {share:.0%} of the floor", fontsize=9)
     axes[1].set_title("the same against what the calibration reports", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=DPI)
     plt.close(fig)
     return path
