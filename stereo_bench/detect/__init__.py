@@ -53,11 +53,15 @@ interpolates the corners on the full image before the saddle fit; circle centres
 re-measured at full resolution (a centroid needs only a window, which the scaled-back estimate
 places to well under a pixel).  A shrunk checkerboard or circle grid copy is blurred by 1 px
 first: sensor noise would otherwise fill the search with specks and double its time.  A ChArUco
-board not found as described costs one more marker search, for any marker of the dictionary in
-either polarity, printed or mirrored; only when that finds one are the other polarity and the
-mirror image searched (a studio camera sees no board in most frames).  Where the camera's
+board not found as described costs one more marker search, for any marker of the board's ids
+in either polarity, printed or mirrored; only when that finds one are the other polarity and
+the mirror image searched (a studio camera sees no board in most frames).  Where the camera's
 previous frame had no board, that search goes first: when it finds no marker, neither would
-the first search, so such a frame costs one marker search.  The per-pixel work of
+the first search, so such a frame costs one marker search.  A board whose markers are read (two
+or more of its ids) but with too few corners between them is seen as it is, and not searched
+again inverted or mirrored.  Markers are read against the first markers of the dictionary, up
+to the board's largest id (OpenCV takes the first marker within the correction distance, so
+the board's ids read as with the whole dictionary).  The per-pixel work of
 both measurements (each saddle-fit step, each disc window) is compiled with numba: a single pass
 over each window's pixels.
 
