@@ -106,10 +106,7 @@ def measure(run: Path, ours: Path, theirs: Path, args, baseline) -> None:
     results = json.loads((run / "results.json").read_text())
     trials, agg = results["trials"], results["aggregate"]
     ds = plots._first_dataset(run, trials[0])
-    figures = [("metrics", None), ("residuals", None), ("trajectory", None),
-               *([("studio", None)] if ds.config.trajectory.kind == "session" else []),
-               *[("projection", c.name) for c in ds.cameras],
-               *[("views", c.name) for c in ds.cameras]]
+    figures = plots.run_figures(ds)
     best = {f: [np.inf, np.inf] for f in figures}
     for _ in range(args.repeat):
         for figure, camera in figures:

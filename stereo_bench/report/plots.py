@@ -347,13 +347,17 @@ def plot_run(out: Path, trials: list[dict], agg: dict, workers=1) -> list[Path]:
     from ..run.workers import in_processes
 
     first = trials[0]
-    ds = _first_dataset(Path(out), first)
-    figures = [("metrics", None), ("residuals", None), ("trajectory", None),
-               *([("studio", None)] if ds.config.trajectory.kind == "session" else []),
-               *[("projection", c.name) for c in ds.cameras],
-               *[("views", c.name) for c in ds.cameras]]
-    jobs = [(str(out), first, agg, figure, camera) for figure, camera in figures]
+    jobs = [(str(out), first, agg, figure, camera)
+            for figure, camera in run_figures(_first_dataset(Path(out), first))]
     return [path for paths in in_processes(_plot_job, jobs, workers) for path in paths]
+
+
+def run_figures(ds: Dataset) -> list[tuple[str, str | None]]:
+    """The figures ``plot_run`` draws for a run of ``ds``: (kind, camera name or None)."""
+    return [("metrics", None), ("residuals", None), ("trajectory", None),
+            *([("studio", None)] if ds.config.trajectory.kind == "session" else []),
+            *[("projection", c.name) for c in ds.cameras],
+            *[("views", c.name) for c in ds.cameras]]
 
 
 def _first_dataset(out: Path, first: dict) -> Dataset:
