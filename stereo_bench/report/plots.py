@@ -40,8 +40,8 @@ from ..io.rundir import RunPaths, TrialPaths  # noqa: E402
 from ..core.files import read_arrays  # noqa: E402
 
 #: Pixels per inch of every figure, made at the resolution it is saved at: the layout then
-#: measures its text at the size it is drawn (at another resolution the draw measures it all
-#: again: a tenth of a sweep configuration's figure time).
+#: measures its text at the size it is drawn (made at another resolution, the draw measured it
+#: all again: 4-14 % of a wide pair's figure time, depending on how it was measured).
 DPI = 110
 
 
@@ -427,8 +427,9 @@ def plot_capture_camera(results: dict, est, frame_names: list[str], path: Path) 
 
     ax = axes[0, 1]
     uv = np.concatenate(obs.image_points)
-    proj = np.concatenate([project_points(o, cam.intrinsics, cam.dist, r, t, cam.model) for o, r, t in
-                           zip(obs.object_points, est.result.rvecs, est.result.tvecs)])
+    proj = np.concatenate([project_points(o, cam.intrinsics, cam.dist, r, t, cam.model)
+                           for o, r, t in zip(obs.object_points, est.result.rvecs,
+                                              est.result.tvecs)])
     res = uv - proj
     norm = np.linalg.norm(res, axis=1)
     scale = 0.05 * max(cam.width, cam.height) / max(np.percentile(norm, 99), 1e-9)
